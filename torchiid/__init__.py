@@ -1,0 +1,1 @@
+"""torchiid: intrinsic image decomposition with semantic hierarchical priors."""
