@@ -1,0 +1,19 @@
+"""Reading and writing images: one loader that knows bit depth and colour encoding."""
+
+from torchiid.io.image import (
+    LoadedImage,
+    linear_to_srgb,
+    load_image,
+    load_mask,
+    save_image,
+    srgb_to_linear,
+)
+
+__all__ = [
+    "LoadedImage",
+    "linear_to_srgb",
+    "load_image",
+    "load_mask",
+    "save_image",
+    "srgb_to_linear",
+]

@@ -1,0 +1,259 @@
+"""Parameters of the method, one frozen dataclass with named presets.
+
+:class:`Parameters` holds every number and switch of the method; ``Parameters.preset("paper")``
+gives the paper's values (Saini & Narayanan, §3.4 and Table 1), :meth:`Parameters.to_json` /
+:meth:`Parameters.from_json` round-trip a parameter file, rejecting unknown keys by name, and
+:meth:`Parameters.variant` switches priors off to build the paper's ablation variants v1–v7
+(Table 3) and baselines 1–3 (§5).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from torchiid.core.exceptions import ParameterError
+
+__all__ = ["Parameters", "PRESETS", "VARIANTS"]
+
+
+@dataclass(frozen=True)
+class Parameters:
+    """Every parameter of the decomposition.
+
+    Stage 0 — semantic features:
+        patch_size: side of the square patches described by the CNN (paper Table 1: 60 px).
+        patch_stride: stride of the patch grid (paper Table 1: 30 px).
+        feature_mode: ``"shared"`` (one CNN pass + RoI-align, fast) or ``"crop"`` (paper).
+        feature_backend: ``"onnx"`` (onnxruntime) or ``"torch"``.
+        lle_features: ``"cnn"`` (f_b) or ``"rgb"`` (patch mean colour), paper Table 2.
+        lle_neighbours: ``"knn"`` or ``"random"``, paper Table 2 (p4 = cnn + knn).
+        lle_k: neighbours per patch in the LLE constraints (paper: 10).
+        lle_reg: Gram-matrix regulariser, ``C + lle_reg * tr(C) * I``.
+        proposal_pca_dim: dimension of the PCA-reduced mid-level feature ``g̊`` (Stage 2).
+        segment_scale: Felzenszwalb scale of the segments giving representative pixels ``Q``.
+        seed: seed of every random choice (proposals ranking, random LLE neighbours).
+
+    Stage 1 — shading (L2), Eq. 1:
+        lambda_g: weight of the global terms ``S_c + S_p``.
+        lambda_m: weight of the mid-level term ``S_m``.
+        lambda_l: weight of the local Retinex term ``S_l``.
+        t_c: chromaticity deviation of ``S_l``'s weights.
+        t_b: dark-pixel deviation of ``S_l``'s weights.
+        t_m: deviation of ``S_m``'s weights on ``1 - <g_i, g_j>``.
+        matting_eps: ε of the matting Laplacian (Levin et al.: 1e-5).
+        dark_eps: intensities are clamped to at least this before taking logs.
+        cg_tol: relative residual at which the shading PCG stops.
+        cg_max_iter: cap on shading PCG iterations.
+
+    Stage 2 — reflectance (L1), Eqs. 6–13:
+        gamma_l: weight of the local sparsity term ``‖A z‖₁``.
+        gamma_m: weight of the mid-level sparsity term ``‖B z‖₁``.
+        gamma_g: weight of the global sparsity term ``‖C z‖₁``.
+        gamma_a: weight of the data term ``‖z − ρ‖²``.
+        theta: Split-Bregman penalty θ.
+        t: deviation of the reflectance weights ``v_ij`` (Eq. 7).
+        bregman_iter: outer Split-Bregman iterations per stage.
+        bregman_tol: relative change of ``z`` at which Split-Bregman stops.
+
+    Iterations, §3.4:
+        iterations: alternations k of Stage 1 and Stage 2 (paper: 5).
+        tau: after each iteration mid-level, global and data weights are multiplied by τ and
+            local weights divided by τ (paper: 1.2).
+
+    Switches (ablations): use_sc, use_sp, use_sm, use_sl, use_rl, use_rm, use_rg turn single
+    priors on or off; ``stage1`` / ``stage2`` turn whole stages off (baselines 1 and 2).
+
+    Working resolution:
+        max_side: images whose longer side exceeds this are decomposed at this size and the
+            layers brought back to full resolution edge-aware (0 = never resize).
+    """
+
+    # Stage 0
+    patch_size: int = 60
+    patch_stride: int = 30
+    feature_mode: str = "shared"
+    feature_backend: str = "onnx"
+    lle_features: str = "cnn"
+    lle_neighbours: str = "knn"
+    lle_k: int = 10
+    lle_reg: float = 1e-3
+    proposal_pca_dim: int = 8
+    segment_scale: float = 100.0
+    seed: int = 0
+    # Stage 1
+    lambda_g: float = 0.02
+    lambda_m: float = 0.02
+    lambda_l: float = 2.0
+    t_c: float = 1e-4
+    t_b: float = 0.05
+    t_m: float = 0.05
+    matting_eps: float = 1e-5
+    dark_eps: float = 1e-4
+    cg_tol: float = 1e-4
+    cg_max_iter: int = 300
+    # Stage 2
+    gamma_l: float = 20.0
+    gamma_m: float = 20.0
+    gamma_g: float = 2.0
+    gamma_a: float = 1.0
+    theta: float = 40.0
+    t: float = 0.05
+    bregman_iter: int = 4
+    bregman_tol: float = 1e-3
+    # iterations
+    iterations: int = 5
+    tau: float = 1.2
+    # switches
+    use_sc: bool = True
+    use_sp: bool = True
+    use_sm: bool = True
+    use_sl: bool = True
+    use_rl: bool = True
+    use_rm: bool = True
+    use_rg: bool = True
+    stage1: bool = True
+    stage2: bool = True
+    # working resolution
+    max_side: int = 0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            want = f.type if isinstance(f.type, str) else f.type.__name__
+            if want == "bool" and not isinstance(value, bool):
+                raise ParameterError(f"parameter {f.name} must be true or false, got {value!r}")
+            if want == "int" and (isinstance(value, bool) or not isinstance(value, int)):
+                raise ParameterError(f"parameter {f.name} must be an integer, got {value!r}")
+            if want == "float":
+                if isinstance(value, bool) or not isinstance(value, (int, float)):
+                    raise ParameterError(f"parameter {f.name} must be a number, got {value!r}")
+                object.__setattr__(self, f.name, float(value))
+        choices = {
+            "feature_mode": ("shared", "crop"),
+            "feature_backend": ("onnx", "torch"),
+            "lle_features": ("cnn", "rgb"),
+            "lle_neighbours": ("knn", "random"),
+        }
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ParameterError(
+                    f"parameter {name} must be one of {', '.join(allowed)}, "
+                    f"got {getattr(self, name)!r}"
+                )
+        positive = ["patch_size", "patch_stride", "lle_k", "proposal_pca_dim", "iterations",
+                    "cg_max_iter", "bregman_iter", "t_c", "t_b", "t_m", "t", "theta", "tau",
+                    "matting_eps", "dark_eps", "cg_tol", "bregman_tol", "segment_scale"]
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise ParameterError(f"parameter {name} must be > 0, got {getattr(self, name)}")
+        nonneg = ["lambda_g", "lambda_m", "lambda_l", "gamma_l", "gamma_m", "gamma_g",
+                  "gamma_a", "lle_reg", "max_side"]
+        for name in nonneg:
+            if getattr(self, name) < 0:
+                raise ParameterError(f"parameter {name} must be >= 0, got {getattr(self, name)}")
+        if self.patch_stride > self.patch_size:
+            raise ParameterError(
+                f"patch_stride ({self.patch_stride}) larger than patch_size ({self.patch_size}) "
+                "leaves pixels uncovered"
+            )
+        if not (self.stage1 or self.stage2):
+            raise ParameterError("at least one of stage1 and stage2 must be on")
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def preset(cls, name: str) -> Parameters:
+        """A named parameter set: one of :data:`PRESETS`."""
+        if name not in PRESETS:
+            raise ParameterError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+        return cls(**PRESETS[name])
+
+    def replace(self, **changes: Any) -> Parameters:
+        """A copy with some fields changed (unknown names rejected)."""
+        self._check_keys(changes)
+        return dataclasses.replace(self, **changes)
+
+    def variant(self, name: str) -> Parameters:
+        """The paper's ablation variant (``v1``–``v7``, Table 3) or baseline (``baseline1``–3).
+
+        ``v1``: S_l with all reflectance priors; ``v2``: + S_g; ``v3``: + S_m instead of S_g;
+        ``v4``: all shading priors, R_l only; ``v5``: R_l + R_g; ``v6``: R_l + R_m; ``v7``: all.
+        ``baseline1``: shading smoothness only (Stage 1, no Stage 2); ``baseline2``:
+        reflectance sparsity only (Stage 2 on ρ = I); ``baseline3``: flattening as reflectance
+        (Stage 2 local term only, on ρ = I).
+        """
+        if name not in VARIANTS:
+            raise ParameterError(f"unknown variant {name!r}; choose one of {', '.join(VARIANTS)}")
+        return dataclasses.replace(self, **VARIANTS[name])
+
+    @staticmethod
+    def _check_keys(data: dict[str, Any]) -> None:
+        known = {f.name for f in fields(Parameters)}
+        for key in data:
+            if key not in known:
+                raise ParameterError(f"Invalid parameter: {key}")
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> Parameters:
+        """Build from a mapping; unknown keys raise :class:`ParameterError` naming the key."""
+        if not isinstance(data, dict):
+            raise ParameterError(f"parameters must be a JSON object, got {type(data).__name__}")
+        cls._check_keys(data)
+        return cls(**data)
+
+    def to_dict(self) -> dict[str, Any]:
+        """All fields as a plain dict."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_json(cls, path: str | os.PathLike, base: Parameters | None = None) -> Parameters:
+        """Read a JSON file; keys it does not name keep the values of ``base`` (or defaults)."""
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise ParameterError(f"{path}: no such parameter file") from None
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ParameterError(f"{path}: not a readable JSON file ({exc})") from None
+        if not isinstance(data, dict):
+            raise ParameterError(f"{path}: expected a JSON object of parameters")
+        cls._check_keys(data)
+        start = base.to_dict() if base is not None else {}
+        start.update(data)
+        return cls(**start)
+
+    def to_json(self, path: str | os.PathLike | None = None) -> str:
+        """The parameters as JSON text; written to ``path`` (atomically) when given."""
+        text = json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n"
+        if path is not None:
+            path = Path(path)
+            tmp = path.with_name(f".{path.name}.tmp")
+            tmp.write_text(text)
+            os.replace(tmp, path)
+        return text
+
+
+_PAPER: dict[str, Any] = {}  # the dataclass defaults are the paper's values
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "paper": _PAPER,
+    "default": _PAPER,
+}
+
+_OFF_R = {"use_rl": False, "use_rm": False, "use_rg": False}
+VARIANTS: dict[str, dict[str, Any]] = {
+    "v1": {"use_sc": False, "use_sp": False, "use_sm": False},
+    "v2": {"use_sm": False},
+    "v3": {"use_sc": False, "use_sp": False},
+    "v4": {"use_rm": False, "use_rg": False},
+    "v5": {"use_rm": False},
+    "v6": {"use_rg": False},
+    "v7": {},
+    "baseline1": {"stage2": False},
+    "baseline2": {"stage1": False},
+    "baseline3": {"stage1": False, "use_rm": False, "use_rg": False},
+}
