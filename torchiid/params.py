@@ -83,7 +83,7 @@ class Parameters:
     lle_k: int = 10
     lle_reg: float = 1e-3
     proposal_pca_dim: int = 8
-    segment_scale: float = 100.0
+    segment_scale: float = 200.0
     seed: int = 0
     # Stage 1
     lambda_g: float = 0.02

@@ -82,7 +82,12 @@ class _Conv2dSame(nn.Conv2d):
     def __init__(self, c_in: int, c_out: int, kernel: int, stride: int = 1, groups: int = 1):
         pad = (kernel - 1) // 2
         super().__init__(
-            c_in, c_out, kernel, stride=stride, padding=pad if stride == 1 else 0, groups=groups,
+            c_in,
+            c_out,
+            kernel,
+            stride=stride,
+            padding=pad if stride == 1 else 0,
+            groups=groups,
             bias=False,
         )
         self.same_pad = pad if stride != 1 else 0
@@ -189,6 +194,7 @@ class FeatureMapExtractor(nn.Module):
         self.backbone = backbone
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
+        """Feature map of an sRGB batch in ``[0, 1]``; see the class docstring."""
         return self.backbone.forward_features(normalize(image))
 
 
@@ -234,7 +240,9 @@ def preprocess(image: torch.Tensor, size: int = 224) -> torch.Tensor:
         ``(B, 3, H, W)`` -> ``(B, 3, size, size)``.
     """
     check_image(image, "image", channels=3, nonnegative=False)
-    x = F.interpolate(image, size=(size, size), mode="bilinear", align_corners=False, antialias=True)
+    x = F.interpolate(
+        image, size=(size, size), mode="bilinear", align_corners=False, antialias=True
+    )
     return normalize(x)
 
 

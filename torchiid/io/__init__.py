@@ -6,6 +6,7 @@ from torchiid.io.image import (
     load_image,
     load_mask,
     save_image,
+    save_uint8,
     srgb_to_linear,
 )
 
@@ -15,5 +16,6 @@ __all__ = [
     "load_image",
     "load_mask",
     "save_image",
+    "save_uint8",
     "srgb_to_linear",
 ]

@@ -39,6 +39,7 @@ __all__ = [
     "load_image",
     "load_mask",
     "save_image",
+    "save_uint8",
     "srgb_to_linear",
     "linear_to_srgb",
 ]
@@ -252,11 +253,29 @@ def save_image(
             raise ValueError(f"unknown encoding {encoding!r}; use srgb8, srgb16, linear16 or npy")
         if payload.ndim == 3:
             payload = np.ascontiguousarray(payload[..., ::-1])  # RGB -> BGR for OpenCV
+    _atomic_write(path, payload, npy=(encoding == "npy"))
+    return path
+
+
+def save_uint8(path: str | os.PathLike, rgb: np.ndarray) -> Path:
+    """Write an ``(H, W, 3)`` or ``(H, W)`` uint8 picture (already sRGB) atomically as is."""
+    rgb = np.asarray(rgb)
+    if rgb.dtype != np.uint8 or rgb.ndim not in (2, 3):
+        raise ImageError(f"save_uint8 takes an (H, W[, 3]) uint8 array, got {rgb.dtype} "
+                         f"{rgb.shape}")
+    payload = np.ascontiguousarray(rgb[..., ::-1]) if rgb.ndim == 3 else rgb
+    path = Path(path)
+    _atomic_write(path, payload)
+    return path
+
+
+def _atomic_write(path: Path, payload: np.ndarray, npy: bool = False) -> None:
+    """Write to a temporary file in the target folder, then rename it over ``path``."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=path.suffix, dir=path.parent)
     os.close(fd)
     try:
-        if encoding == "npy":
+        if npy:
             with open(tmp, "wb") as fh:
                 np.save(fh, payload)
         else:
@@ -270,4 +289,3 @@ def save_image(
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
-    return path

@@ -1,0 +1,226 @@
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
+from skimage import data
+
+from torchiid.core.exceptions import ImageError, ParameterError, ShapeError
+from torchiid.features import patches as patches_mod
+from torchiid.features.backbone import FeatureMapExtractor, efficientnet_lite0, feature_offset
+from torchiid.features.onnx_backend import OnnxFeatureExtractor, ensure_onnx_model
+from torchiid.features.patches import (
+    PatchFeatureExtractor,
+    _linear_to_srgb,
+    patch_features,
+    patch_grid,
+)
+from torchiid.features.roi import RoIAlign, roi_align
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    # Tiny inputs: one thread avoids OpenMP oversubscription on a busy 2-core machine.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def onnx_extractor(tmp_path_factory):
+    # Same cache folder as tests/features/test_onnx.py: the manifest makes it one export.
+    return OnnxFeatureExtractor(ensure_onnx_model(tmp_path_factory.getbasetemp() / "torchiid-onnx"))
+
+
+@pytest.fixture(scope="module")
+def image():
+    """Two small linear-RGB crops of skimage's coffee photo, (2, 3, 64, 96)."""
+    srgb = torch.from_numpy(data.coffee()).permute(2, 0, 1)[None].float() / 255
+    srgb = F.interpolate(srgb, size=(128, 192), mode="bilinear", antialias=True)
+    return rgb_to_linear_rgb(torch.cat([srgb[..., :64, :96], srgb[..., 64:, 96:]]))
+
+
+# ---------------------------------------------------------------- grid
+
+
+@pytest.mark.parametrize(("h", "w"), [(60, 60), (61, 119), (100, 130), (384, 512), (90, 150)])
+def test_grid_covers_image(h, w):
+    g = patch_grid(h, w)
+    cover = torch.zeros(h, w, dtype=torch.long)
+    for x1, y1, x2, y2 in g.boxes.tolist():
+        assert 0 <= x1 < x2 <= w and 0 <= y1 < y2 <= h and x2 - x1 == 60 and y2 - y1 == 60
+        cover[y1:y2, x1:x2] += 1
+    assert cover.min() >= 1
+    assert len(g) == g.shape[0] * g.shape[1]
+    assert g.centers.dtype == torch.long
+    torch.testing.assert_close(g.centers, g.boxes[:, [1, 0]] + 30)
+    ys = g.boxes[:: g.shape[1], 1]
+    assert ys.diff().le(30).all() and ys.diff().gt(0).all() and ys[0] == 0 and ys[-1] == h - 60
+    assert g.shape == (math.ceil((h - 60) / 30) + 1, math.ceil((w - 60) / 30) + 1)
+
+
+def test_grid_errors():
+    with pytest.raises(ParameterError, match="smaller than a 60 px patch"):
+        patch_grid(59, 100)
+    with pytest.raises(ParameterError, match="must be >= 1"):
+        patch_grid(100, 100, stride=0)
+
+
+# ---------------------------------------------------------------- roi_align
+
+
+def _bilinear(fmap, y, x):
+    h, w = fmap.shape[-2:]
+    y, x = min(max(y, 0.0), h - 1.0), min(max(x, 0.0), w - 1.0)
+    y0, x0 = min(int(y), h - 1), min(int(x), w - 1)
+    y1, x1 = min(y0 + 1, h - 1), min(x0 + 1, w - 1)
+    ly, lx = y - y0, x - x0
+    return (
+        fmap[:, y0, x0] * (1 - ly) * (1 - lx)
+        + fmap[:, y0, x1] * (1 - ly) * lx
+        + fmap[:, y1, x0] * ly * (1 - lx)
+        + fmap[:, y1, x1] * ly * lx
+    )
+
+
+def _roi_align_reference(fmap, box, ph, pw, s, scale):
+    # torchvision's aligned RoI-align, written out sample by sample, in float64.
+    x1, y1, x2, y2 = (v * scale - 0.5 for v in box)
+    bh, bw = (y2 - y1) / ph, (x2 - x1) / pw
+    out = torch.zeros(fmap.shape[0], ph, pw, dtype=torch.float64)
+    for i in range(ph):
+        for j in range(pw):
+            for a in range(s):
+                for b in range(s):
+                    y = y1 + (i + (a + 0.5) / s) * bh
+                    x = x1 + (j + (b + 0.5) / s) * bw
+                    out[:, i, j] += _bilinear(fmap, y, x) / s**2
+    return out
+
+
+def test_roi_align_matches_reference():
+    gen = torch.Generator().manual_seed(0)
+    fmap = torch.rand(2, 3, 6, 8, dtype=torch.float64, generator=gen)
+    boxes = torch.tensor(
+        [[0.0, 0.0, 16.0, 12.0], [3.0, 5.0, 9.5, 7.0], [10.0, 2.0, 15.0, 11.5]], dtype=torch.float64
+    )
+    out = roi_align(fmap, boxes, (2, 3), spatial_scale=0.5, sampling_ratio=2)
+    assert out.shape == (2, 3, 3, 2, 3) and out.dtype == torch.float64
+    for bi in range(2):
+        for n in range(3):
+            ref = _roi_align_reference(fmap[bi], boxes[n].tolist(), 2, 3, 2, 0.5)
+            torch.testing.assert_close(out[bi, n], ref)
+    per_image = roi_align(fmap, boxes.expand(2, -1, -1), (2, 3), 0.5, 2)
+    torch.testing.assert_close(per_image, out)
+    torch.testing.assert_close(RoIAlign((2, 3), 0.5, 2)(fmap, boxes), out)
+
+
+def test_roi_align_errors():
+    with pytest.raises(ShapeError, match=r"expected boxes of shape \(N, 4\)"):
+        roi_align(torch.zeros(1, 2, 4, 4), torch.zeros(3, 5), 2)
+    with pytest.raises(ShapeError, match="boxes hold 2 images but features hold 1"):
+        roi_align(torch.zeros(1, 2, 4, 4), torch.zeros(2, 3, 4), 2)
+    with pytest.raises(ParameterError, match="must be >= 1"):
+        roi_align(torch.zeros(1, 2, 4, 4), torch.zeros(3, 4), 0)
+
+
+# ---------------------------------------------------------------- patch features
+
+
+def test_shared_mode_pools_at_patch_positions(image):
+    # A fake feature map holding each cell's centre (original-image coordinates): RoI-align of
+    # a linear function is exact, so every interior patch must pool to its box centre.
+    scale = 2.0
+
+    def coords(x):
+        hs, ws = x.shape[-2:]
+        fy = (32 * torch.arange(-(-hs // 32)) + feature_offset(hs) + 0.5) / (hs / 64)
+        fx = (32 * torch.arange(-(-ws // 32)) + feature_offset(ws) + 0.5) / (ws / 96)
+        return torch.stack(torch.broadcast_tensors(fy[:, None], fx[None, :]))[None]
+
+    grid = patch_grid(64, 96, size=20, stride=10)
+    pooled = patches_mod._shared(image[:1], grid, coords, scale)[0]  # (N, 2): (y, x)
+    centre = grid.boxes.double().view(-1, 2, 2).mean(1)[:, [1, 0]].float()
+    inner = (grid.boxes[:, 0] >= 16) & (grid.boxes[:, 2] <= 96 - 16)
+    inner &= (grid.boxes[:, 1] >= 16) & (grid.boxes[:, 3] <= 64 - 16)
+    assert inner.sum() >= 4
+    torch.testing.assert_close(pooled[inner], centre[inner], atol=1e-4, rtol=0)
+
+
+def test_shapes_batch_determinism_and_backends(image, onnx_extractor):
+    out = patch_features(image, backend="onnx", onnx_extractor=onnx_extractor)
+    assert out.features.shape == (2, 6, 1280) and out.grid.shape == (2, 3)
+    assert out.mode == "shared" and out.features.dtype == torch.float32
+    again = patch_features(image, backend="onnx", onnx_extractor=onnx_extractor)
+    torch.testing.assert_close(out.features, again.features, atol=0, rtol=0)
+    single = patch_features(image[1:], backend="onnx", onnx_extractor=onnx_extractor)
+    torch.testing.assert_close(single.features[0], out.features[1], atol=1e-5, rtol=1e-5)
+    torch_out = patch_features(image, backend="torch")
+    assert (torch_out.features - out.features).abs().max() < 1e-4
+    # Different patches of different images differ.
+    assert (out.features[0, 0] - out.features[1, 0]).abs().max() > 0.1
+
+
+def test_crop_mode_matches_direct_computation(image, onnx_extractor):
+    image = image[..., :60, :90]  # two patches per image
+    grid = patch_grid(60, 90)
+    out = patch_features(image, mode="crop", backend="torch", batch_size=3)
+    srgb = torch.where(
+        image <= 0.0031308, 12.92 * image, 1.055 * image.clamp_min(1e-12) ** (1 / 2.4) - 0.055
+    )
+    model = FeatureMapExtractor(efficientnet_lite0()).eval()
+    for n, (x1, y1, x2, y2) in enumerate(grid.boxes.tolist()):
+        crop = F.interpolate(srgb[:, :, y1:y2, x1:x2], size=(224, 224), mode="bilinear")
+        with torch.no_grad():
+            ref = model(crop).mean(dim=(2, 3))
+        torch.testing.assert_close(out.features[:, n], ref, atol=1e-4, rtol=1e-4)
+    onnx_out = patch_features(image, mode="crop", onnx_extractor=onnx_extractor)
+    assert (onnx_out.features - out.features).abs().max() < 1e-4
+
+
+def test_dtype_follows_input(image, onnx_extractor):
+    out = patch_features(image.double(), onnx_extractor=onnx_extractor)
+    assert out.features.dtype == torch.float64 and out.features.device == image.device
+
+
+def test_linear_to_srgb_matches_kornia_and_has_finite_gradient():
+    x = torch.linspace(0, 1, 101, dtype=torch.float64).requires_grad_(True)
+    y = _linear_to_srgb(x)
+    ref = linear_rgb_to_rgb(x.detach().expand(3, -1)[None, :, :, None])[0, 0, :, 0]
+    torch.testing.assert_close(y, ref)
+    y.sum().backward()
+    assert torch.isfinite(x.grad).all()
+
+
+def test_module_equals_function(image):
+    module = PatchFeatureExtractor().train()
+    assert not module.extractor.training
+    with torch.no_grad():
+        out = module(image)
+    torch.testing.assert_close(out.features, patch_features(image, backend="torch").features)
+
+
+@pytest.mark.parametrize(
+    ("bad", "error", "match"),
+    [
+        (torch.rand(1, 4, 64, 64), ShapeError, r"expected image of shape \(B, 3, H, W\)"),
+        (torch.rand(3, 64, 64), ShapeError, r"expected image of shape \(B, 3, H, W\)"),
+        (torch.full((1, 3, 64, 64), float("nan")), ImageError, "contains 12288 NaN"),
+        (torch.rand(1, 3, 50, 80), ImageError, "50x80 pixels; at least 60 px"),
+        (-torch.rand(1, 3, 64, 64), ImageError, "negative values"),
+    ],
+)
+def test_bad_images(bad, error, match):
+    with pytest.raises(error, match=match):
+        patch_features(bad, backend="torch")
+
+
+def test_bad_parameters(image):
+    with pytest.raises(ParameterError, match="mode must be 'shared' or 'crop', got 'dense'"):
+        patch_features(image, mode="dense")
+    with pytest.raises(ParameterError, match="backend must be 'onnx' or 'torch', got 'tf'"):
+        patch_features(image, backend="tf")
+    with pytest.raises(ParameterError, match="scale must be > 0"):
+        patch_features(image, scale=0.0)

@@ -1,0 +1,155 @@
+"""The ``torchiid`` command line: a thin layer over the library.
+
+Subcommands: ``decompose`` (the method, or colour Retinex), ``features`` (look at the Stage 0
+features) and ``export-onnx`` (write the ONNX backbone).
+Errors a user can cause end in a one-line ``torchiid: error: ...`` and a non-zero exit status.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from torchiid.core.exceptions import TorchiidError
+
+__all__ = ["main", "build_parser"]
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".npy"}
+log = logging.getLogger("torchiid")
+
+
+def _add_common_image_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--linear", action="store_true",
+                   help="8/16-bit input files hold linear values (default: sRGB-encoded)")
+    p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
+                   help="where to run (auto: CUDA when available)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``torchiid`` command."""
+    parser = argparse.ArgumentParser(
+        prog="torchiid",
+        description="Intrinsic image decomposition (I = R x S) with semantic hierarchical priors.",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="log details to stderr")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    d = sub.add_parser("decompose", help="split photos into reflectance and shading",
+                       description="Split photos into reflectance and shading.")
+    d.add_argument("inputs", nargs="+", type=Path, help="image files and/or directories")
+    d.add_argument("-o", "--output", type=Path, required=True, help="output directory")
+    d.add_argument("--method", default="semantic", choices=["semantic", "retinex"],
+                   help="semantic: the paper's method (default); retinex: Grosse et al.'s "
+                        "colour Retinex baseline")
+    d.add_argument("--preset", default="default", help="parameter preset: default or paper")
+    d.add_argument("--params", type=Path, help="JSON file of parameters (over the preset)")
+    d.add_argument("--variant", help="ablation variant v1..v7 or baseline1..baseline3")
+    d.add_argument("--iterations", type=int, help="alternations k (overrides the preset)")
+    d.add_argument("--max-side", type=int,
+                   help="working resolution: longer side in px (0 = full resolution)")
+    d.add_argument("--mask", type=Path,
+                   help="mask image (nonzero = inside); applies to every input")
+    d.add_argument("--save-linear", action="store_true",
+                   help="also write 16-bit linear PNGs of reflectance and shading")
+    d.add_argument("--save-npy", action="store_true",
+                   help="also write float32 linear .npy arrays of reflectance and shading")
+    d.add_argument("--save-iterations", action="store_true",
+                   help="write every iteration's sigma, rho, R, S (sRGB PNGs)")
+    d.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    d.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_common_image_options(d)
+
+    f = sub.add_parser("features", help="write pictures of the Stage 0 semantic features",
+                       description="Write the PCA image of g_i, proposal masks and the patch "
+                                   "grid of one photo, and print timings per step.")
+    f.add_argument("input", type=Path, help="an image file")
+    f.add_argument("-o", "--output", type=Path, required=True, help="output directory")
+    f.add_argument("--mode", default="shared", choices=["shared", "crop"],
+                   help="patch feature mode")
+    f.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    _add_common_image_options(f)
+
+    e = sub.add_parser("export-onnx", help="export the EfficientNet-Lite0 feature extractor",
+                       description="Export the CNN feature extractor to ONNX and record its "
+                                   "SHA-256 in the manifest.")
+    e.add_argument("-o", "--output-dir", type=Path, default=None,
+                   help="where to write (default: the cache used by the library)")
+
+    return parser
+
+
+def resolve_device(name: str):
+    """``auto`` → CUDA when available, else CPU; ``cuda`` without CUDA is an error."""
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise TorchiidError("--device cuda was asked for, but no CUDA device is available")
+    return torch.device(name)
+
+
+def collect_inputs(inputs: Sequence[Path]) -> list[Path]:
+    """Expand directories into their image files (sorted); keep files as given."""
+    out: list[Path] = []
+    for p in inputs:
+        if p.is_dir():
+            found = sorted(q for q in p.iterdir()
+                           if q.is_file() and q.suffix.lower() in IMAGE_SUFFIXES)
+            if not found:
+                raise TorchiidError(f"{p}: directory holds no image files "
+                                    f"({', '.join(sorted(IMAGE_SUFFIXES))})")
+            out.extend(found)
+        else:
+            out.append(p)
+    return out
+
+
+def _cmd_decompose(args: argparse.Namespace) -> int:
+    from torchiid.commands.decompose import run_decompose
+
+    return run_decompose(args)
+
+
+def _cmd_features(args: argparse.Namespace) -> int:
+    from torchiid.commands.features import run_features
+
+    return run_features(args)
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from torchiid.features.onnx_backend import export_to_dir, ensure_onnx_model
+
+    t0 = time.perf_counter()
+    path = export_to_dir(args.output_dir) if args.output_dir else ensure_onnx_model()
+    print(f"wrote {path} ({time.perf_counter() - t0:.1f} s)")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``torchiid`` console script; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="torchiid: %(message)s")
+    handlers = {
+        "decompose": _cmd_decompose,
+        "features": _cmd_features,
+        "export-onnx": _cmd_export,
+    }
+    try:
+        return handlers[args.command](args)
+    except TorchiidError as exc:
+        print(f"torchiid: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("torchiid: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,82 @@
+"""``torchiid features``: pictures of the Stage 0 semantic features of one photo."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+from torchiid.core.exceptions import TorchiidError
+from torchiid.io import linear_to_srgb, load_image, save_uint8
+
+OUTPUTS = ("gpca.png", "proposals.png", "patch-grid.png")
+
+
+def _pick_masks(props, count: int = 4) -> list[int]:
+    """Best-ranked proposals of moderate size (2%–60% of the image), at most ``count``."""
+    areas = props.areas.float() / float(np.prod(props.shape))
+    order = torch.argsort(props.scores, descending=True)
+    chosen = [int(i) for i in order if 0.02 <= float(areas[i]) <= 0.6][:count]
+    if len(chosen) < count:
+        chosen += [int(i) for i in order if int(i) not in chosen][: count - len(chosen)]
+    return chosen
+
+
+def run_features(args: argparse.Namespace) -> int:
+    """Run the ``features`` subcommand; returns the exit status."""
+    from torchiid.cli import resolve_device
+    from torchiid.features.midlevel import midlevel_features
+    from torchiid.features.patches import patch_features, patch_grid
+    from torchiid.features.proposals import selective_search
+    from torchiid.features.visualize import draw_patch_grid, overlay_masks, pca_image
+
+    device = resolve_device(args.device)
+    out = args.output
+    stem = args.input.stem
+    targets = [out / f"{stem}-{name}" for name in OUTPUTS]
+    existing = [t for t in targets if t.exists()]
+    if existing and not args.overwrite:
+        raise TorchiidError(f"{existing[0]} exists; pass --overwrite to replace it")
+    timings: list[tuple[str, float]] = []
+
+    t0 = time.perf_counter()
+    loaded = load_image(args.input, linear=args.linear)
+    image = loaded.image[None].to(device)
+    timings.append(("load image", time.perf_counter() - t0))
+    h, w = image.shape[-2:]
+
+    t0 = time.perf_counter()
+    grid = patch_grid(h, w)
+    feats = patch_features(image, mode=args.mode)
+    timings.append((f"patch features f_b ({args.mode}, {len(grid)} patches)",
+                    time.perf_counter() - t0))
+
+    t0 = time.perf_counter()
+    props = selective_search(image.cpu()[0])
+    timings.append((f"selective search ({props.num_proposals} proposals, "
+                    f"{props.num_atoms} atoms)", time.perf_counter() - t0))
+
+    t0 = time.perf_counter()
+    mid = midlevel_features(props)
+    gpca = pca_image(mid)
+    timings.append(("mid-level g_i + PCA", time.perf_counter() - t0))
+
+    srgb = linear_to_srgb(loaded.image).permute(1, 2, 0).numpy()
+    t0 = time.perf_counter()
+    out.mkdir(parents=True, exist_ok=True)
+    save_uint8(targets[0], gpca)
+    save_uint8(targets[1], overlay_masks(srgb, props.masks(_pick_masks(props)), columns=2))
+    save_uint8(targets[2], draw_patch_grid(srgb, grid.boxes))
+    timings.append(("write pictures", time.perf_counter() - t0))
+
+    width = max(len(n) for n, _ in timings)
+    print(f"{'step':<{width}}  seconds")
+    for name, sec in timings:
+        print(f"{name:<{width}}  {sec:7.3f}")
+    print(f"{'total':<{width}}  {sum(s for _, s in timings):7.3f}")
+    print(f"features f_b: {tuple(feats.features.shape)}; g_i: {mid.num_proposals} proposals")
+    for t in targets:
+        print(f"wrote {t}")
+    return 0
