@@ -1,0 +1,98 @@
+"""Stage 0 as one call: every semantic feature the two stages need, computed once per image.
+
+:func:`semantic_features` runs the CNN patch features ``f_b`` (or patch-mean RGB for the
+paper's strategies p1/p2), selective-search proposals and their mid-level features ``g_i``
+(3x3 similarities for ``S_m`` and PCA ``g̊`` for ``B``), and the Felzenszwalb segments whose
+representative pixels form ``Q`` for ``C``. What a switched-off prior does not need is skipped.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+
+from torchiid.params import Parameters
+
+__all__ = ["SemanticFeatures", "semantic_features", "patch_mean_rgb"]
+
+
+@dataclass(frozen=True)
+class SemanticFeatures:
+    """What Stage 0 gives the two stages (``None`` where the prior using it is off).
+
+    Attributes:
+        patch_centers: ``(N, 2)`` long ``(y, x)`` patch centres (for ``S_c``).
+        patch_features: ``(B, N, D)`` ``f_b`` (D = 1280) or patch-mean RGB (D = 3).
+        similarity: ``(B, 4, H, W)`` ``<g_i, g_j>`` on the 3x3 stencil (for ``S_m``).
+        gpca: ``(B, d, H, W)`` PCA-reduced ``g̊`` (for ``B``).
+        segments: ``(B, H, W)`` long segment labels (for ``Q`` of ``C``).
+        midlevel: the per-image mid-level features (for pictures), or ``None``.
+        times: seconds per step.
+    """
+
+    patch_centers: torch.Tensor | None
+    patch_features: torch.Tensor | None
+    similarity: torch.Tensor | None
+    gpca: torch.Tensor | None
+    segments: torch.Tensor | None
+    midlevel: object | None = None
+    times: dict[str, float] = field(default_factory=dict)
+
+
+def patch_mean_rgb(image: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+    """Mean colour of every patch box ``(x1, y1, x2, y2)`` via an integral image.
+
+    Shape:
+        image ``(B, 3, H, W)``, boxes ``(N, 4)`` -> ``(B, N, 3)``.
+    """
+    ii = F.pad(image.cumsum(-1).cumsum(-2), (1, 0, 1, 0))
+    x1, y1, x2, y2 = (boxes[:, i].to(image.device) for i in range(4))
+    s = ii[..., y2, x2] - ii[..., y1, x2] - ii[..., y2, x1] + ii[..., y1, x1]
+    area = ((x2 - x1) * (y2 - y1)).to(image.dtype)
+    return (s / area).transpose(1, 2)
+
+
+def semantic_features(image: torch.Tensor, params: Parameters) -> SemanticFeatures:
+    """Compute Stage 0 for a batch of linear RGB images ``(B, 3, H, W)``."""
+    from torchiid.features.midlevel import midlevel_features_batch
+    from torchiid.features.patches import patch_features, patch_grid
+    from torchiid.features.proposals import selective_search
+    from torchiid.priors.representatives import felzenszwalb_segments
+    from torchiid.priors.shading_terms import shading_stencil
+
+    times: dict[str, float] = {}
+    b, _, h, w = image.shape
+    centers = feats = sim = gpca = segs = mid = None
+    need_sc = params.stage1 and params.use_sc and params.lambda_g > 0
+    need_g = (params.stage1 and params.use_sm and params.lambda_m > 0) or (
+        params.stage2 and params.use_rm and params.gamma_m > 0)
+    if need_sc:
+        t0 = time.perf_counter()
+        grid = patch_grid(h, w, params.patch_size, params.patch_stride)
+        centers = grid.centers.to(image.device)
+        if params.lle_features == "cnn":
+            feats = patch_features(image, mode=params.feature_mode,
+                                   backend=params.feature_backend, size=params.patch_size,
+                                   stride=params.patch_stride).features
+        else:
+            feats = patch_mean_rgb(image, grid.boxes)
+        times["patch features"] = time.perf_counter() - t0
+    if need_g:
+        t0 = time.perf_counter()
+        props = selective_search(image.detach().cpu(), seed=params.seed)
+        times["proposals"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        mid = midlevel_features_batch(props, like=image)
+        if params.stage1 and params.use_sm and params.lambda_m > 0:
+            sim = mid.similarity(shading_stencil(h, w, device=image.device))
+        if params.stage2 and params.use_rm and params.gamma_m > 0:
+            gpca = mid.pca(params.proposal_pca_dim)
+        times["mid-level g"] = time.perf_counter() - t0
+    if params.stage2 and params.use_rg and params.gamma_g > 0:
+        t0 = time.perf_counter()
+        segs = felzenszwalb_segments(image, scale=params.segment_scale)
+        times["segments"] = time.perf_counter() - t0
+    return SemanticFeatures(centers, feats, sim, gpca, segs, mid, times)
