@@ -50,7 +50,9 @@ def _reflectance_hw3(reflectance: np.ndarray | torch.Tensor) -> np.ndarray:
         r = reflectance.detach().to("cpu", torch.float64)
         if r.dim() == 4:
             if r.shape[0] != 1:
-                raise ShapeError(f"expected reflectance of shape (1, C, H, W), got {tuple(r.shape)}")
+                raise ShapeError(
+                    f"expected reflectance of shape (1, C, H, W), got {tuple(r.shape)}"
+                )
             r = r[0]
         if r.dim() == 2:
             r = r[None]
