@@ -14,23 +14,18 @@ from torchiid.io import linear_to_srgb, load_image, save_uint8
 OUTPUTS = ("gpca.png", "proposals.png", "patch-grid.png")
 
 
-def _pick_masks(props, count: int = 4) -> list[int]:
-    """Best-ranked proposals of moderate size (2%–60% of the image), at most ``count``."""
-    areas = props.areas.float() / float(np.prod(props.shape))
-    order = torch.argsort(props.scores, descending=True)
-    chosen = [int(i) for i in order if 0.02 <= float(areas[i]) <= 0.6][:count]
-    if len(chosen) < count:
-        chosen += [int(i) for i in order if int(i) not in chosen][: count - len(chosen)]
-    return chosen
-
-
 def run_features(args: argparse.Namespace) -> int:
     """Run the ``features`` subcommand; returns the exit status."""
     from torchiid.cli import resolve_device
     from torchiid.features.midlevel import midlevel_features
     from torchiid.features.patches import patch_features, patch_grid
     from torchiid.features.proposals import selective_search
-    from torchiid.features.visualize import draw_patch_grid, overlay_masks, pca_image
+    from torchiid.features.visualize import (
+        draw_patch_grid,
+        overlay_masks,
+        pca_image,
+        select_masks,
+    )
 
     device = resolve_device(args.device)
     out = args.output
@@ -67,7 +62,7 @@ def run_features(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
     save_uint8(targets[0], gpca)
-    save_uint8(targets[1], overlay_masks(srgb, props.masks(_pick_masks(props)), columns=2))
+    save_uint8(targets[1], overlay_masks(srgb, props.masks(select_masks(props, 4)), columns=2))
     save_uint8(targets[2], draw_patch_grid(srgb, grid.boxes))
     timings.append(("write pictures", time.perf_counter() - t0))
 
