@@ -1,7 +1,7 @@
 """The ``torchiid`` command line: a thin layer over the library.
 
 Subcommands: ``decompose`` (the method, or colour Retinex), ``features`` (look at the Stage 0
-features) and ``export-onnx`` (write the ONNX backbone).
+features), ``export-onnx`` (write the ONNX backbone) and ``eval`` (metrics on datasets).
 Errors a user can cause end in a one-line ``torchiid: error: ...`` and a non-zero exit status.
 """
 
@@ -79,6 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("-o", "--output-dir", type=Path, default=None,
                    help="where to write (default: the cache used by the library)")
 
+    from torchiid.commands.eval import add_eval_parser
+
+    add_eval_parser(sub)
     return parser
 
 
@@ -130,6 +133,12 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from torchiid.commands.eval import run_eval
+
+    return run_eval(args)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``torchiid`` console script; returns the exit status."""
     parser = build_parser()
@@ -140,6 +149,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "decompose": _cmd_decompose,
         "features": _cmd_features,
         "export-onnx": _cmd_export,
+        "eval": _cmd_eval,
     }
     try:
         return handlers[args.command](args)

@@ -7,6 +7,7 @@ import logging
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 
@@ -127,7 +128,8 @@ def run_decompose(args: argparse.Namespace) -> int:
             if args.method == "retinex":
                 from torchiid.baselines.retinex import color_retinex
 
-                result = color_retinex(batch, mask=mbatch)
+                refl, shad = color_retinex(batch, mask=mbatch)
+                result = SimpleNamespace(reflectance=refl, shading=shad, iterations=())
             else:
                 it_bar = tqdm(total=params.iterations, desc=f"{stem}", unit="it",
                               disable=not show, file=sys.stderr, leave=False)
