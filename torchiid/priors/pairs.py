@@ -172,11 +172,17 @@ class PairSet:
         rows = torch.arange(b * p, device=weights.device)
         cols = torch.cat([block_diagonal_index(i, n), block_diagonal_index(j, n)])
         idx = torch.stack([torch.cat([rows, rows]), cols])
-        return torch.sparse_coo_tensor(idx, torch.cat([sw, -sw]), (b * p, b * n)).coalesce()
+        return torch.sparse_coo_tensor(
+            idx, torch.cat([sw, -sw]), (b * p, b * n), check_invariants=False
+        ).coalesce()
 
 
 def constraint_matrix(
-    rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, num_rows: int, height: int,
+    rows: torch.Tensor,
+    cols: torch.Tensor,
+    values: torch.Tensor,
+    num_rows: int,
+    height: int,
     width: int,
 ) -> torch.Tensor:
     """Linear constraint rows of a batch as a block-diagonal sparse COO matrix.
@@ -214,4 +220,6 @@ def constraint_matrix(
     idx = torch.stack(
         [block_diagonal_index(rows.long(), num_rows), block_diagonal_index(cols.long(), n)]
     )
-    return torch.sparse_coo_tensor(idx, values.reshape(-1), (b * num_rows, b * n)).coalesce()
+    return torch.sparse_coo_tensor(
+        idx, values.reshape(-1), (b * num_rows, b * n), check_invariants=False
+    ).coalesce()

@@ -3,6 +3,9 @@
 Solves ``A x = b`` for symmetric positive (semi-)definite ``A`` given only as a function
 ``matvec(x)``. The first dimension of ``b`` is the batch: each image has its own step sizes,
 residual and stopping test, so a batch gives the same answer as its images one by one.
+An item is declared converged only when its *true* residual ``||b - A x|| / ||b||`` is below
+``tol`` (the recursive residual drifts in float32; on a mismatch CG restarts from the true
+residual), and a :class:`ConvergenceWarning` is emitted otherwise, never a silent stop.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torchiid.core.check import check_finite
 from torchiid.core.exceptions import ConvergenceWarning, ShapeError
 
 __all__ = ["PCGResult", "pcg"]
@@ -26,13 +30,16 @@ class PCGResult:
         x: the solution, shaped like ``b``.
         iterations: iterations run (the batch's maximum).
         residual: ``(B,)`` final relative residual ``||b - A x|| / ||b||`` per batch item.
-        converged: whether every batch item reached the tolerance.
+        converged: whether every batch item reached the tolerance (confirmed on the true
+            residual; an item whose ``p^T A p <= 0`` is stopped and counts as not converged).
+        item_iterations: ``(B,)`` iterations each batch item ran before it stopped.
     """
 
     x: torch.Tensor
     iterations: int
     residual: torch.Tensor
     converged: bool
+    item_iterations: torch.Tensor | None = None
 
 
 def _bdot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -65,6 +72,10 @@ def pcg(
         max_iter: iteration cap.
         warn: emit :class:`ConvergenceWarning` when an item misses ``tol``.
 
+    Raises:
+        ShapeError: ``x0`` or the preconditioner is not shaped like ``b``.
+        ImageError: ``b`` or ``x0`` holds NaN or infinite values.
+
     Returns:
         :class:`PCGResult`.
     """
@@ -74,12 +85,14 @@ def pcg(
     if x.shape != b.shape:
         raise ShapeError(f"x0 has shape {tuple(x.shape)} but b has shape {tuple(b.shape)}")
     if precond is None:
+
         def apply_m(r: torch.Tensor) -> torch.Tensor:
             return r
     elif isinstance(precond, torch.Tensor):
         if precond.shape != b.shape:
             raise ShapeError(
-                f"preconditioner has shape {tuple(precond.shape)}, expected {tuple(b.shape)}")
+                f"preconditioner has shape {tuple(precond.shape)}, expected {tuple(b.shape)}"
+            )
         pinv = precond
 
         def apply_m(r: torch.Tensor) -> torch.Tensor:
@@ -87,6 +100,8 @@ def pcg(
     else:
         apply_m = precond
 
+    check_finite(b, "right-hand side b")
+    check_finite(x, "warm start x0")
     bnorm = _bdot(b, b).sqrt()
     bnorm = torch.where(bnorm > 0, bnorm, torch.ones_like(bnorm))
     r = b - matvec(x)
@@ -95,11 +110,15 @@ def pcg(
     rz = _bdot(r, z)
     res = _bdot(r, r).sqrt() / bnorm
     active = res > tol
+    reached = ~active
+    broke = torch.zeros_like(active)
+    iters = torch.zeros(b.shape[0], dtype=torch.long, device=b.device)
     it = 0
     while it < max_iter and bool(active.any()):
         ap = matvec(p)
         pap = _bdot(p, ap)
-        alpha = torch.where(active & (pap > 0), rz / torch.where(pap > 0, pap, 1), 0)
+        ok = pap > 0
+        alpha = torch.where(active & ok, rz / torch.where(ok, pap, 1), 0)
         x = x + _bview(alpha, x) * p
         r = r - _bview(alpha, r) * ap
         z = apply_m(r)
@@ -108,17 +127,36 @@ def pcg(
         p = z + _bview(beta, p) * p
         rz = rz_new
         res = _bdot(r, r).sqrt() / bnorm
-        active = active & (res > tol) & (pap > 0)
+        iters = iters + active.long()
         it += 1
-    converged = not bool(active.any())
+        # breakdown (pap <= 0 or NaN): A is not SPD on this item; stop it, do not claim success
+        broke = broke | (active & ~ok)
+        done = active & ok & ~(res > tol)
+        if bool(done.any()):
+            # residual replacement: the recursive residual drifts in float32, so confirm
+            # with the true one and restart the direction where it is not yet reached
+            r_true = b - matvec(x)
+            res_true = _bdot(r_true, r_true).sqrt() / bnorm
+            redo = done & (res_true > tol)
+            if bool(redo.any()):
+                rv = _bview(redo, r)
+                r = torch.where(rv, r_true, r)
+                z_true = apply_m(r)
+                p = torch.where(rv, z_true, p)
+                rz = torch.where(redo, _bdot(r, z_true), rz)
+                res = torch.where(redo, res_true, res)
+            reached = reached | (done & ~redo)
+        active = active & ~reached & ~broke
+    converged = bool(reached.all())
     # report the true residual (the recursive one drifts in float32)
     r_true = b - matvec(x)
     res = _bdot(r_true, r_true).sqrt() / bnorm
     if warn and not converged:
+        why = " (breakdown: the operator is not positive definite)" if bool(broke.any()) else ""
         warnings.warn(
             f"PCG stopped after {it} iterations with relative residual "
-            f"{float(res.max()):.3g} > tol {tol:g}",
+            f"{float(res.max()):.3g} > tol {tol:g}{why}",
             ConvergenceWarning,
             stacklevel=2,
         )
-    return PCGResult(x=x, iterations=it, residual=res, converged=converged)
+    return PCGResult(x=x, iterations=it, residual=res, converged=converged, item_iterations=iters)

@@ -1,0 +1,141 @@
+import math
+
+import pytest
+import torch
+
+from torchiid.core.exceptions import ImageError, ParameterError, ShapeError
+from torchiid.priors.shading_terms import (
+    midlevel_term,
+    retinex_term,
+    retinex_weights,
+    shading_stencil,
+)
+
+NBRS = [(0, 1), (1, -1), (1, 0), (1, 1)]
+
+
+def _pairs(h, w):
+    for y in range(h):
+        for x in range(w):
+            for dy, dx in NBRS:
+                if 0 <= y + dy < h and 0 <= x + dx < w:
+                    yield y, x, y + dy, x + dx
+
+
+def _dense_from_pairs(h, w, weight_fn, target_fn=None):
+    n = h * w
+    a = torch.zeros(n, n, dtype=torch.float64)
+    bvec = torch.zeros(n, dtype=torch.float64)
+    for y, x, yy, xx in _pairs(h, w):
+        i, j = y * w + x, yy * w + xx
+        wij = weight_fn(y, x, yy, xx)
+        a[i, i] += wij
+        a[j, j] += wij
+        a[i, j] -= wij
+        a[j, i] -= wij
+        if target_fn is not None:
+            c = target_fn(y, x, yy, xx)
+            bvec[i] += wij * c
+            bvec[j] -= wij * c
+    return a, bvec
+
+
+def test_midlevel_matches_dense():
+    torch.manual_seed(0)
+    h, w = 6, 7
+    g = torch.randn(1, 5, h, w, dtype=torch.float64)
+    g[:, :, :, 4:] = g[:, :, :1, :1]  # a uniform region: similarity 1
+    g = g / g.norm(dim=1, keepdim=True)
+    st = shading_stencil(h, w)
+    sim = (g.unsqueeze(2) * st.neighbours(g)).sum(1)
+    term = midlevel_term(sim, st, t_m=0.5)
+
+    def wfn(y, x, yy, xx):
+        dot = float((g[0, :, y, x] * g[0, :, yy, xx]).sum())
+        return math.exp(-((1 - dot) ** 2) / 0.25)
+
+    a, _ = _dense_from_pairs(h, w, wfn)
+    torch.testing.assert_close(term.to_sparse().to_dense(), a)
+    x = torch.randn(1, 1, h, w, dtype=torch.float64)
+    torch.testing.assert_close(term.matvec(x).reshape(-1), a @ x.reshape(-1))
+    torch.testing.assert_close(term.diagonal().reshape(-1), a.diagonal())
+
+
+def test_retinex_matches_dense_and_formula():
+    torch.manual_seed(1)
+    h, w = 5, 6
+    img = torch.rand(1, 3, h, w, dtype=torch.float64) * 0.2
+    img[:, :, 2:, :3] = torch.tensor([0.02, 0.03, 0.04], dtype=torch.float64).view(1, 3, 1, 1)
+    img[:, :, :2, :] = img[:, :, :1, :1] * torch.linspace(0.5, 2, w, dtype=torch.float64)
+    st = shading_stencil(h, w)
+    tc, tb = 0.05, 0.05
+    term = retinex_term(img, st, t_c=tc, t_b=tb)
+    p = img.mean(1)[0]
+    chrom = img[0] / img[0].norm(dim=0, keepdim=True)
+
+    def wfn(y, x, yy, xx):
+        cos = float((chrom[:, y, x] * chrom[:, yy, xx]).sum())
+        dark = 1 + math.exp(-(float(p[y, x]) ** 2 + float(p[yy, xx]) ** 2) / tb**2)
+        return math.exp(-((1 - cos) ** 2) / tc**2) * dark
+
+    def cfn(y, x, yy, xx):
+        return math.log(float(p[y, x])) - math.log(float(p[yy, xx]))
+
+    a, bvec = _dense_from_pairs(h, w, wfn, cfn)
+    torch.testing.assert_close(term.to_sparse().to_dense(), a)
+    torch.testing.assert_close(term.rhs().reshape(-1), bvec)
+    # energy at s equals the literal Eq. 5 sum up to a constant: check the difference of two s
+    s1, s2 = torch.randn(2, 1, 1, h, w, dtype=torch.float64)
+    logp = p.log()
+
+    def eq5(s):
+        tot = 0.0
+        for y, x, yy, xx in _pairs(h, w):
+            r = (logp[y, x] - s[0, 0, y, x]) - (logp[yy, xx] - s[0, 0, yy, xx])
+            tot += wfn(y, x, yy, xx) * float(r) ** 2
+        return tot
+
+    got = float(term.energy(s1)[0] - term.energy(s2)[0])
+    assert got == pytest.approx(eq5(s1) - eq5(s2), rel=1e-9)
+    # the same-chromaticity pixels of the top rows are tied with weight ~1 (x 1-2 dark factor)
+    wts = retinex_weights(img, st, tc, tb)
+    assert float(wts[0, 0, 0, :-1].min()) > 0.99
+
+
+def test_paper_tc_is_nearly_binary():
+    img = torch.tensor([0.5, 0.5, 0.5]).view(1, 3, 1, 1).repeat(1, 1, 3, 3)
+    img[0, :, :, 2] = torch.tensor([0.5, 0.525, 0.5]).view(3, 1)  # ~1.3 degrees away
+    w = retinex_weights(img, shading_stencil(3, 3), t_c=1e-4, t_b=0.05)
+    assert float(w[0, 0, 0, 0]) > 0.99  # identical colours
+    assert float(w[0, 0, 0, 1]) < 0.01  # a 5% change in one channel: cut
+
+
+def test_mask_zeroes_pairs_leaving_it():
+    torch.manual_seed(2)
+    img = torch.rand(1, 3, 5, 5)
+    mask = torch.ones(1, 1, 5, 5, dtype=torch.bool)
+    mask[0, 0, 2, 2] = False
+    st = shading_stencil(5, 5)
+    for term in (
+        retinex_term(img, st, t_c=1.0, mask=mask),
+        midlevel_term(torch.ones(1, 4, 5, 5), st, mask=mask),
+    ):
+        a = term.to_sparse().to_dense()
+        assert float(a[12].abs().max()) == 0.0
+        assert float(a.abs().sum()) > 0
+
+
+def test_errors():
+    st = shading_stencil(5, 5)
+    with pytest.raises(ShapeError, match="similarity"):
+        midlevel_term(torch.ones(1, 8, 5, 5), st)
+    with pytest.raises(ParameterError):
+        midlevel_term(torch.ones(1, 4, 5, 5), st, t_m=0)
+    bad = torch.rand(1, 3, 5, 5)
+    bad[0, 1, 1, 1] = float("nan")
+    with pytest.raises(ImageError, match="NaN"):
+        retinex_term(bad, st)
+    with pytest.raises(ShapeError):
+        retinex_term(torch.rand(1, 3, 6, 5), st)
+    with pytest.raises(ShapeError, match="mask"):
+        retinex_term(torch.rand(1, 3, 5, 5), st, mask=torch.ones(1, 1, 4, 5, dtype=torch.bool))

@@ -1,0 +1,123 @@
+import pytest
+import torch
+
+from torchiid.core.exceptions import ConvergenceWarning, ImageError, ShapeError
+from torchiid.solvers.pcg import pcg
+
+
+def _spd(n, seed, cond=100.0):
+    g = torch.Generator().manual_seed(seed)
+    q, _ = torch.linalg.qr(torch.randn(n, n, generator=g, dtype=torch.float64))
+    ev = torch.logspace(0, torch.log10(torch.tensor(cond)).item(), n, dtype=torch.float64)
+    d = torch.rand(n, generator=g, dtype=torch.float64) * 10 + 0.1  # badly scaled rows
+    a = q @ torch.diag(ev) @ q.T
+    return d.sqrt().view(-1, 1) * a * d.sqrt().view(1, -1)
+
+
+def _batch_matvec(mats):
+    def mv(x):
+        return torch.stack([m @ xi for m, xi in zip(mats, x, strict=True)])
+
+    return mv
+
+
+def test_matches_linalg_solve_with_and_without_jacobi():
+    mats = [_spd(20, s) for s in range(3)]
+    b = torch.randn(3, 20, dtype=torch.float64)
+    ref = torch.stack([torch.linalg.solve(m, bi) for m, bi in zip(mats, b, strict=True)])
+    for precond in (None, torch.stack([1 / m.diagonal() for m in mats])):
+        res = pcg(_batch_matvec(mats), b, precond=precond, tol=1e-10, max_iter=500)
+        assert res.converged
+        torch.testing.assert_close(res.x, ref, atol=1e-7, rtol=1e-7)
+        assert float(res.residual.max()) <= 1e-10
+
+
+def test_jacobi_helps_on_badly_scaled_system():
+    mats = [_spd(40, 7)]
+    b = torch.randn(1, 40, dtype=torch.float64)
+    plain = pcg(_batch_matvec(mats), b, tol=1e-8, max_iter=1000)
+    jac = pcg(
+        _batch_matvec(mats), b, precond=1 / mats[0].diagonal().view(1, -1), tol=1e-8, max_iter=1000
+    )
+    assert jac.iterations < plain.iterations
+
+
+def test_batched_equals_per_item():
+    mats = [_spd(15, s, cond=1e3) for s in (1, 2)]
+    b = torch.randn(2, 15, dtype=torch.float64)
+    pre = torch.stack([1 / m.diagonal() for m in mats])
+    both = pcg(_batch_matvec(mats), b, precond=pre, tol=1e-9)
+    for k in range(2):
+        one = pcg(_batch_matvec(mats[k : k + 1]), b[k : k + 1], precond=pre[k : k + 1], tol=1e-9)
+        torch.testing.assert_close(both.x[k], one.x[0], atol=1e-7, rtol=0)
+        # round-off at the stopping boundary may shift the count by one
+        assert abs(int(both.item_iterations[k]) - one.iterations) <= 1
+
+
+def test_warm_start_needs_fewer_iterations():
+    mats = [_spd(120, 3, cond=1e4)]
+    b = torch.randn(1, 120, dtype=torch.float64)
+    pre = 1 / mats[0].diagonal().view(1, -1)
+    cold = pcg(_batch_matvec(mats), b, precond=pre, tol=1e-9, max_iter=2000)
+    rough = pcg(_batch_matvec(mats), b, precond=pre, tol=1e-4, max_iter=2000)
+    warm = pcg(_batch_matvec(mats), b, x0=rough.x, precond=pre, tol=1e-9, max_iter=2000)
+    assert warm.converged and warm.iterations < cold.iterations
+    torch.testing.assert_close(warm.x, cold.x, atol=1e-6, rtol=0)
+
+
+def test_float32_converged_means_true_residual_reached():
+    mats = [_spd(60, 4, cond=1e4).float()]
+    b = torch.randn(1, 60)
+    res = pcg(
+        _batch_matvec(mats),
+        b,
+        precond=1 / mats[0].diagonal().view(1, -1),
+        tol=1e-5,
+        max_iter=2000,
+        warn=False,
+    )
+    true = (b[0] - mats[0] @ res.x[0]).norm() / b[0].norm()
+    torch.testing.assert_close(res.residual[0], true, rtol=1e-3, atol=1e-7)
+    if res.converged:
+        assert float(true) <= 1e-5
+
+
+def test_warns_when_tolerance_missed_and_on_breakdown():
+    mats = [_spd(30, 5, cond=1e4)]
+    b = torch.randn(1, 30, dtype=torch.float64)
+    with pytest.warns(ConvergenceWarning, match="relative residual"):
+        res = pcg(_batch_matvec(mats), b, tol=1e-12, max_iter=3)
+    assert not res.converged and res.iterations == 3
+    indefinite = [torch.diag(torch.tensor([1.0, -1.0, 2.0], dtype=torch.float64))]
+    with pytest.warns(ConvergenceWarning, match="not positive definite"):
+        res = pcg(_batch_matvec(indefinite), torch.ones(1, 3, dtype=torch.float64), max_iter=50)
+    assert not res.converged
+
+
+def test_errors_and_zero_rhs():
+    mv = _batch_matvec([torch.eye(4, dtype=torch.float64)])
+    with pytest.raises(ShapeError):
+        pcg(mv, torch.ones(1, 4), x0=torch.ones(1, 5))
+    with pytest.raises(ShapeError):
+        pcg(mv, torch.ones(1, 4), precond=torch.ones(1, 3))
+    bad = torch.ones(1, 4)
+    bad[0, 1] = float("nan")
+    with pytest.raises(ImageError, match="NaN"):
+        pcg(mv, bad)
+    res = pcg(mv, torch.zeros(1, 4, dtype=torch.float64))
+    assert res.converged and res.iterations == 0
+
+
+def test_callable_preconditioner_and_image_shaped_input():
+    torch.manual_seed(0)
+    w = torch.rand(2, 1, 5, 6, dtype=torch.float64) + 0.5
+
+    def mv(x):  # diag(w) + a 1-D Laplacian along x: SPD
+        lap = 2 * x
+        lap[..., 1:] -= x[..., :-1]
+        lap[..., :-1] -= x[..., 1:]
+        return w * x + lap
+
+    b = torch.randn(2, 1, 5, 6, dtype=torch.float64)
+    res = pcg(mv, b, precond=lambda r: r / (w + 2), tol=1e-10)
+    torch.testing.assert_close(mv(res.x), b, atol=1e-8, rtol=0)

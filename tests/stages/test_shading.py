@@ -1,0 +1,123 @@
+import pytest
+import torch
+
+from torchiid.core.exceptions import ConvergenceWarning, ImageError, ParameterError, ShapeError
+from torchiid.priors.lle import patch_rgb_features
+from torchiid.priors.shading_terms import shading_stencil
+from torchiid.stages.shading import build_shading_system, solve_shading
+from torchiid.synthetic import mondrian
+
+
+def _inputs(h, w, batch=1, seed=0, dtype=torch.float64, stride=8):
+    syn = mondrian(h, w, batch=batch, seed=seed, dtype=dtype)
+    st = shading_stencil(h, w)
+    g = torch.nn.functional.one_hot(syn.labels, 16).permute(0, 3, 1, 2).to(dtype)
+    sim = (g.unsqueeze(2) * st.neighbours(g)).sum(1)
+    ys, xs = torch.arange(stride // 2, h, stride), torch.arange(stride // 2, w, stride)
+    ctr = torch.stack(torch.meshgrid(ys, xs, indexing="ij"), -1).reshape(-1, 2)
+    feats = patch_rgb_features(syn.image, ctr, patch_size=stride)
+    return syn, dict(patch_centers=ctr, patch_features=feats, similarity=sim)
+
+
+def test_mondrian_recovery_and_exact_reconstruction():
+    syn, kw = _inputs(48, 48)
+    res = solve_shading(syn.image, **kw, tol=1e-8, max_iter=3000)
+    assert res.diagnostics.converged
+    assert set(res.diagnostics.terms) == {"S_c", "S_p", "S_m", "S_l"}
+    s, gt = res.log_shading.flatten(), syn.shading.log().flatten()
+    corr = float(torch.corrcoef(torch.stack([s, gt]))[0, 1])
+    assert corr > 0.98
+    torch.testing.assert_close(res.reflectance * res.shading, syn.image)
+    torch.testing.assert_close(res.shading, res.log_shading.exp())
+    # normalisation: mean log-shading equals mean log-intensity
+    logp = syn.image.mean(1).clamp_min(1e-4).log()
+    torch.testing.assert_close(res.log_shading.mean(), logp.mean())
+
+
+def test_solution_solves_the_assembled_system():
+    syn, kw = _inputs(12, 10, seed=3, stride=4)
+    anchor = 1e-3
+    res = solve_shading(syn.image, **kw, anchor=anchor, tol=1e-11, max_iter=2000)
+    system, _ = build_shading_system(syn.image, **kw)
+    a = system.to_sparse().to_dense()
+    n = a.shape[0]
+    alpha = anchor * a.diagonal().mean()
+    logp = syn.image.mean(1).clamp_min(1e-4).log()
+    rhs = system.rhs().reshape(-1) + alpha * logp.mean()
+    ref = torch.linalg.solve(a + alpha * torch.eye(n, dtype=a.dtype), rhs)
+    torch.testing.assert_close(res.log_shading.reshape(-1), ref, atol=1e-7, rtol=0)
+    # the assembled operator is symmetric PSD
+    torch.testing.assert_close(a, a.T)
+    assert float(torch.linalg.eigvalsh(a).min()) > -1e-9
+
+
+def test_batched_equals_per_image():
+    syn, kw = _inputs(24, 24, batch=2, seed=1)
+    both = solve_shading(syn.image, **kw, tol=1e-9, max_iter=2000)
+    for b in range(2):
+        one = solve_shading(
+            syn.image[b : b + 1],
+            patch_centers=kw["patch_centers"],
+            patch_features=kw["patch_features"][b : b + 1],
+            similarity=kw["similarity"][b : b + 1],
+            tol=1e-9,
+            max_iter=2000,
+        )
+        torch.testing.assert_close(both.log_shading[b], one.log_shading[0], atol=1e-6, rtol=0)
+
+
+def test_mask_decomposes_object_by_itself():
+    syn, kw = _inputs(24, 24, seed=2)
+    mask = torch.zeros(1, 1, 24, 24, dtype=torch.bool)
+    mask[..., 3:20, 5:22] = True
+    res = solve_shading(syn.image, **kw, mask=mask, tol=1e-9, max_iter=2000)
+    assert float(res.log_shading[~mask].abs().max()) == 0.0
+    torch.testing.assert_close(
+        res.reflectance[~mask.expand(-1, 3, -1, -1)], syn.image[~mask.expand(-1, 3, -1, -1)]
+    )
+    other = syn.image.clone()
+    other[~mask.expand(-1, 3, -1, -1)] = torch.rand(int((~mask).sum()) * 3, dtype=other.dtype)
+    res2 = solve_shading(other, **kw, mask=mask, tol=1e-9, max_iter=2000)
+    torch.testing.assert_close(res2.log_shading, res.log_shading, atol=1e-6, rtol=0)
+
+
+def test_coarse_to_fine_reaches_the_same_answer_with_fewer_iterations():
+    syn, kw = _inputs(64, 64, seed=4, dtype=torch.float32)
+    one = solve_shading(syn.image, **kw, tol=1e-4, max_iter=3000, levels=1)
+    three = solve_shading(syn.image, **kw, tol=1e-4, max_iter=3000, levels=3)
+    assert three.diagnostics.iterations < one.diagnostics.iterations
+    diff = (three.log_shading - one.log_shading).abs().max()
+    assert float(diff) < 0.05
+
+
+def test_warm_start_and_switches():
+    syn, kw = _inputs(24, 24, seed=5)
+    ref = solve_shading(syn.image, **kw, tol=1e-8, max_iter=2000)
+    warm = solve_shading(syn.image, **kw, x0=ref.log_shading, tol=1e-8, max_iter=2000)
+    assert warm.diagnostics.iterations < ref.diagnostics.iterations
+    only_l = solve_shading(syn.image, lambda_g=0, tol=1e-8, max_iter=2000)
+    assert only_l.diagnostics.terms == ("S_l",)
+    no_sp = solve_shading(syn.image, **kw, use_sp=False, lambda_m=0)
+    assert no_sp.diagnostics.terms == ("S_c", "S_l")
+
+
+def test_errors_and_warning():
+    syn, kw = _inputs(16, 16)
+    bad = syn.image.clone()
+    bad[0, 0, 3, 3] = float("nan")
+    with pytest.raises(ImageError, match="NaN"):
+        solve_shading(bad)
+    with pytest.raises(ShapeError):
+        solve_shading(syn.image[:, :2])
+    with pytest.raises(ShapeError, match="mask"):
+        solve_shading(syn.image, mask=torch.ones(1, 1, 8, 8, dtype=torch.bool))
+    with pytest.raises(ParameterError, match="empty"):
+        solve_shading(syn.image, mask=torch.zeros(1, 1, 16, 16, dtype=torch.bool))
+    with pytest.raises(ParameterError, match="switched off"):
+        solve_shading(syn.image, lambda_g=0, lambda_l=0)
+    with pytest.raises(ParameterError, match="both"):
+        solve_shading(syn.image, patch_centers=kw["patch_centers"])
+    with pytest.raises(ShapeError, match="x0"):
+        solve_shading(syn.image, x0=torch.zeros(1, 1, 15, 16, dtype=syn.image.dtype))
+    with pytest.warns(ConvergenceWarning, match="shading PCG"):
+        solve_shading(syn.image, **kw, max_iter=2, tol=1e-10)

@@ -1,0 +1,150 @@
+"""The 3x3 pairwise shading priors ``S_m`` (mid-level, Eq. 4) and ``S_l`` (local Retinex, Eq. 5).
+
+Both live on the 3x3 half-offset stencil (4 offsets, each unordered neighbour pair once) and are
+returned as :class:`~torchiid.priors.quadratic.StencilQuadratic` terms in the log-shading
+``s = log sigma``.
+
+* ``S_m = sum_ij w^m_ij (s_i - s_j)^2`` with ``w^m_ij = exp(-(1 - <g_i, g_j>)^2 / t_m^2)``.
+* ``S_l = sum_ij w^l_ij ((log p_i - s_i) - (log p_j - s_j))^2`` with
+  ``w^l_ij = exp(-(1 - <pbar_i, pbar_j>)^2 / t_c^2) * [1 + exp(-(p_i^2 + p_j^2) / t_b^2)]``.
+
+The input image is **linear RGB**. The intensity ``p`` is the channel mean, clamped to at least
+``dark_eps`` before the log; the chromaticity ``pbar`` is the unit-norm RGB vector (channels
+clamped to ``dark_eps`` so black pixels have a defined, neutral chromaticity). With the paper's
+``t_c = 1e-4`` the chromaticity factor is nearly binary: it is ``>= 0.37`` only for pairs whose
+colours differ by less than about 0.8 degrees (``1 - cos < 1e-4``) and vanishes otherwise, so
+``S_l`` mostly ties pixels of identical chromaticity.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torchiid.core.check import check_finite, check_image, check_shape
+from torchiid.core.exceptions import ParameterError, ShapeError
+from torchiid.priors.quadratic import StencilQuadratic
+from torchiid.priors.stencil import Stencil
+
+__all__ = [
+    "shading_stencil",
+    "pair_mask",
+    "midlevel_term",
+    "retinex_weights",
+    "retinex_term",
+    "intensity",
+]
+
+
+def shading_stencil(height: int, width: int, device: torch.device | str | None = None) -> Stencil:
+    """The 3x3 half-offset stencil ``(0,1), (1,-1), (1,0), (1,1)`` shared by ``S_m`` and ``S_l``."""
+    return Stencil.square(height, width, 3, device=device)
+
+
+def pair_mask(
+    stencil: Stencil, mask: torch.Tensor | None, dtype: torch.dtype
+) -> torch.Tensor | None:
+    """``(B, K, H, W)`` 0/1 factor: both pixels of a pair lie in ``mask`` (or ``None``)."""
+    if mask is None:
+        return None
+    check_shape(mask, ("B", 1, stencil.height, stencil.width), "mask")
+    m = mask.to(dtype)
+    return m * stencil.neighbours(m)[:, 0]
+
+
+def intensity(image: torch.Tensor, dark_eps: float = 1e-4) -> torch.Tensor:
+    """Intensity ``p`` = channel mean of linear RGB, clamped to ``>= dark_eps``: ``(B,1,H,W)``."""
+    return image.mean(dim=1, keepdim=True).clamp_min(dark_eps)
+
+
+def midlevel_term(
+    similarity: torch.Tensor,
+    stencil: Stencil,
+    t_m: float = 0.05,
+    mask: torch.Tensor | None = None,
+) -> StencilQuadratic:
+    """The mid-level prior ``S_m`` (Eq. 4) from per-pair proposal similarities.
+
+    Args:
+        similarity: ``(B, K, H, W)`` values ``<g_i, g_{i + o_k}>`` for the stencil's offsets
+            (``MidLevelFeatures.similarity(stencil)``); entries of pairs leaving the image are
+            ignored.
+        stencil: the 3x3 stencil (:func:`shading_stencil`).
+        t_m: deviation (paper: 0.05).
+        mask: optional ``(B, 1, H, W)`` bool; pairs leaving it get weight 0.
+
+    Returns:
+        ``StencilQuadratic`` with weights ``exp(-(1 - sim)^2 / t_m^2)``.
+
+    Shape:
+        unknowns ``(B, 1, H, W)``.
+    """
+    if t_m <= 0:
+        raise ParameterError(f"t_m must be > 0, got {t_m}")
+    check_shape(similarity, ("B", stencil.num_offsets, stencil.height, stencil.width), "similarity")
+    sim = similarity * stencil.valid.to(similarity.device, similarity.dtype)
+    check_finite(sim, "similarity")
+    w = torch.exp(-((1 - sim) ** 2) / t_m**2)
+    pm = pair_mask(stencil, mask, w.dtype)
+    return StencilQuadratic(stencil, w if pm is None else w * pm)
+
+
+def retinex_weights(
+    image: torch.Tensor,
+    stencil: Stencil,
+    t_c: float = 1e-4,
+    t_b: float = 0.05,
+    dark_eps: float = 1e-4,
+) -> torch.Tensor:
+    """Pair weights ``w^l`` of ``S_l`` (Eq. 5), ``(B, 3, H, W) -> (B, K, H, W)``.
+
+    ``exp(-(1 - <pbar_i, pbar_j>)^2 / t_c^2) * [1 + exp(-(p_i^2 + p_j^2) / t_b^2)]`` on linear RGB.
+    """
+    if t_c <= 0 or t_b <= 0:
+        raise ParameterError(f"t_c and t_b must be > 0, got t_c={t_c}, t_b={t_b}")
+    chrom = image.clamp_min(dark_eps)
+    chrom = chrom / chrom.norm(dim=1, keepdim=True)
+    cos = (chrom.unsqueeze(2) * stencil.neighbours(chrom)).sum(1)  # (B, K, H, W)
+    p = intensity(image, dark_eps)
+    pj = stencil.neighbours(p)[:, 0]
+    dark = 1 + torch.exp(-(p**2 + pj**2) / t_b**2)
+    w = torch.exp(-((1 - cos) ** 2) / t_c**2) * dark
+    return w * stencil.valid.to(w.device, w.dtype)
+
+
+def retinex_term(
+    image: torch.Tensor,
+    stencil: Stencil,
+    t_c: float = 1e-4,
+    t_b: float = 0.05,
+    dark_eps: float = 1e-4,
+    mask: torch.Tensor | None = None,
+) -> StencilQuadratic:
+    """The local Retinex prior ``S_l`` (Eq. 5) on the log-shading.
+
+    ``sum w^l_ij ((log p_i - s_i) - (log p_j - s_j))^2 = sum w^l_ij (s_i - s_j - c_ij)^2`` with
+    the target differences ``c_ij = log p_i - log p_j``.
+
+    Args:
+        image: ``(B, 3, H, W)`` linear RGB, ``>= 0``.
+        stencil: the 3x3 stencil (:func:`shading_stencil`).
+        t_c: chromaticity deviation (paper: 1e-4, nearly binary, see the module notes).
+        t_b: dark-pixel deviation (paper: 0.05).
+        dark_eps: intensity/channel floor before logs and normalisation.
+        mask: optional ``(B, 1, H, W)`` bool; pairs leaving it get weight 0.
+
+    Returns:
+        ``StencilQuadratic`` with target differences of ``log p``.
+    """
+    check_image(image, "image", channels=3)
+    if image.shape[-2:] != (stencil.height, stencil.width):
+        raise ShapeError(
+            f"image is {tuple(image.shape[-2:])} but the stencil is "
+            f"{(stencil.height, stencil.width)}"
+        )
+    w = retinex_weights(image, stencil, t_c, t_b, dark_eps)
+    pm = pair_mask(stencil, mask, w.dtype)
+    if pm is not None:
+        w = w * pm
+    logp = intensity(image, dark_eps).log()
+    target = stencil.apply(logp)[:, 0]
+    return StencilQuadratic(stencil, w, target)
