@@ -1,0 +1,109 @@
+import pytest
+import torch
+
+from torchiid.core.exceptions import ImageError, ParameterError, ShapeError
+from torchiid.priors.reflectance_terms import lab_features, stencil_affinity
+from torchiid.priors.representatives import global_pair_term, representative_pixels
+from torchiid.priors.stencil import Stencil
+from torchiid.stages.reflectance import shading_from_ratio, solve_reflectance
+from torchiid.synthetic import mondrian
+
+
+def _scene(batch=1, h=48, w=64, seed=3, noise=0.03):
+    s = mondrian(h, w, batch=batch, patches=8, seed=seed)
+    g = torch.Generator().manual_seed(0)
+    rho = (s.reflectance + noise * torch.randn(s.reflectance.shape, generator=g)).clamp(0, 1)
+    codes = torch.randn(int(s.labels.max()) + 1, 4, generator=g) * 0.02
+    gpca = codes[s.labels].permute(0, 3, 1, 2).contiguous()
+    return s, rho, gpca
+
+
+def _rmse(a, b):
+    return float((a - b).square().mean().sqrt())
+
+
+def test_mondrian_l1_solution_is_closer_to_truth_than_rho():
+    s, rho, gpca = _scene()
+    r = solve_reflectance(rho, s.image, gpca=gpca, segments=s.labels)
+    before, after = _rmse(rho, s.reflectance), _rmse(r.reflectance, s.reflectance)
+    # measured: 0.030 -> 0.021 with the defaults
+    assert after < 0.8 * before
+    assert r.reflectance.shape == (1, 3, 48, 64) and r.shading.shape == (1, 1, 48, 64)
+    torch.testing.assert_close(r.shading, shading_from_ratio(s.image, r.reflectance))
+    assert int(r.num_representatives[0]) == int(torch.unique(s.labels).numel())
+    assert float(r.solver.objective[-1, 0]) < float(r.solver.objective[0, 0])
+
+
+def test_batch_equals_one_by_one():
+    s, rho, gpca = _scene(batch=2, h=32, w=40)
+    kw = dict(max_outer=3, cg_max_iter=4, window=5)
+    r = solve_reflectance(rho, s.image, gpca=gpca, segments=s.labels, **kw)
+    for b in range(2):
+        sl = slice(b, b + 1)
+        r1 = solve_reflectance(rho[sl], s.image[sl], gpca=gpca[sl], segments=s.labels[sl], **kw)
+        torch.testing.assert_close(r.reflectance[sl], r1.reflectance, atol=1e-5, rtol=1e-5)
+
+
+def test_mask_keeps_rho_outside():
+    s, rho, gpca = _scene(h=24, w=32)
+    mask = torch.ones(1, 1, 24, 32, dtype=torch.bool)
+    mask[..., :8, :10] = False
+    r = solve_reflectance(rho, s.image, gpca=gpca, segments=s.labels, mask=mask, window=5)
+    assert torch.equal(r.reflectance[~mask.expand_as(rho)], rho[~mask.expand_as(rho)])
+    assert not torch.equal(r.reflectance[mask.expand_as(rho)], rho[mask.expand_as(rho)])
+
+
+def test_terms_switch_off():
+    s, rho, gpca = _scene(h=20, w=24)
+    off = solve_reflectance(rho, s.image, gamma_l=0, gamma_m=None, gamma_g=0, gpca=gpca)
+    torch.testing.assert_close(off.reflectance, rho)
+    a = solve_reflectance(rho, s.image, gamma_m=0, gamma_g=0, window=5)
+    a_nogpca = solve_reflectance(rho, s.image, gpca=None, gamma_g=0, window=5)
+    torch.testing.assert_close(a.reflectance, a_nogpca.reflectance)
+    assert int(a.num_representatives[0]) == 0
+
+
+def test_merged_and_separate_objectives_are_identical():
+    # merging A and B is an exact reformulation: same objective at every z
+    s, rho, gpca = _scene(h=12, w=14, noise=0.05)
+    rho, img, gp = rho.double(), s.image.double(), gpca.double()
+    g = torch.Generator().manual_seed(7)
+    z0 = (rho + 0.05 * torch.randn(rho.shape, generator=g, dtype=torch.float64)).clamp(0, 1)
+    kw = dict(gpca=gp, segments=s.labels, window=5, max_outer=0, value_scale=1.0, z0=z0)
+    m = solve_reflectance(rho, img, merge_stencil_terms=True, **kw)
+    sep = solve_reflectance(rho, img, merge_stencil_terms=False, **kw)
+    # independent objective: γ_l‖v^l Mz‖₁ + γ_m‖v^m Mz‖₁ + γ_g‖v^g C z‖₁ + γ_a‖z − ρ‖²
+    rbar = lab_features(rho)
+    st = Stencil.square(12, 14, 5)
+    vl = stencil_affinity(rbar, st, 0.05)
+    vm = vl * stencil_affinity(gp, st, 0.05)
+    c = global_pair_term(rbar, representative_pixels(rbar, s.labels), 0.05)
+    d = st.apply(z0).abs()
+    ref = float(
+        20 * (vl[:, None] * d).sum()
+        + 20 * (vm[:, None] * d).sum()
+        + 2 * c.l1(z0).sum()
+        + (z0 - rho).square().sum()
+    )
+    assert abs(float(m.solver.objective[0, 0]) - ref) < 1e-9 * ref
+    assert abs(float(sep.solver.objective[0, 0]) - ref) < 1e-9 * ref
+
+
+def test_errors():
+    s, rho, gpca = _scene(h=16, w=16)
+    with pytest.raises(ShapeError, match="batch size and \\(H, W\\) must match"):
+        solve_reflectance(rho, s.image[..., :8])
+    bad = rho.clone()
+    bad[0, 1, 2, 3] = float("nan")
+    with pytest.raises(ImageError, match="rho contains 1 NaN"):
+        solve_reflectance(bad, s.image)
+    with pytest.raises(ShapeError, match=r"expected gpca of shape \(1, d, 16, 16\)"):
+        solve_reflectance(rho, s.image, gpca=gpca[..., :8])
+    with pytest.raises(ShapeError, match="expected a bool mask"):
+        solve_reflectance(rho, s.image, mask=torch.ones(1, 1, 16, 16))
+    with pytest.raises(ShapeError, match=r"expected segments of shape \(1, 16, 16\)"):
+        solve_reflectance(rho, s.image, segments=s.labels[:, :4])
+    with pytest.raises(ParameterError, match="gammas must be >= 0"):
+        solve_reflectance(rho, s.image, gamma_l=-1.0)
+    with pytest.raises(ParameterError, match="deviations t, t_g must be > 0"):
+        solve_reflectance(rho, s.image, t=0.0)

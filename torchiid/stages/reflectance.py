@@ -1,0 +1,246 @@
+"""Stage 2: the L1 reflectance formulation (paper §3.3–3.4, Eqs. 6–13).
+
+Given the intermediate reflectance ``ρ = I / σ`` of the shading stage, solve
+
+    π(z) = γ_l ‖A z‖₁ + γ_m ‖B z‖₁ + γ_g ‖C z‖₁ + γ_a ‖z − ρ‖²
+
+by Split-Bregman (:func:`~torchiid.solvers.split_bregman.split_bregman`). All weights are
+recomputed from ``ρ`` at every call (the paper re-estimates priors each iteration):
+
+- ``A`` (local, Eq. 8): pairs of an 11×11 window, ``v^l = exp(−‖Δr̄‖²/2t²)``;
+- ``B`` (mid-level, Eq. 9): same pairs, ``v^m = v^l · exp(−‖Δg̊‖²/2t_g²)`` on the PCA-reduced
+  proposal features ``g̊``;
+- ``C`` (global, Eq. 10): all pairs of representative pixels (one per segment).
+
+``A`` and ``B`` share their pairs, so ``γ_l‖diag(v^l)Mz‖₁ + γ_m‖diag(v^m)Mz‖₁`` equals
+``(γ_l+γ_m)‖diag(v̂)Mz‖₁`` with ``v̂ = (γ_l v^l + γ_m v^m)/(γ_l+γ_m)`` exactly (same pairs,
+non-negative weights, anisotropic L1). With ``merge_stencil_terms=True`` (default) the solver
+works on this single term, which halves time and memory; the minimiser is unchanged (the
+Bregman splitting, hence the iterates after few iterations, differ slightly).
+
+Scales. The paper's values (γ_l = γ_m = 20, γ_g = 2, θ = 40, §4) are reused from Bi et al.'s
+Matlab code, which works on 8-bit values ``0..255``. ``γ_a`` is not given; 1 is used. We evaluate
+Eq. 12 on ``s·z`` (``s = value_scale = 255``) and divide by ``s``, i.e. on our ``[0, 1]`` linear
+values the solver minimises ``Σ_k γ_k ‖W_k M_k z‖₁ + s·γ_a ‖z − ρ‖²`` with penalty ``s·θ``. With
+``s = 1`` the L1 terms dominate (γ_l · 120 neighbours against a data weight of 1) and the
+minimiser collapses colour edges. Measured on a seeded 64×48 Mondrian with ``ρ`` = reflectance +
+N(0, 0.03²) (RMSE of ``ρ`` to the truth 0.030): converged solutions (30 outer × 30 CG) reach
+RMSE 0.13 at ``s = 1`` and 0.064 at ``s = 255``; the default few iterations (3 outer × 5 CG,
+``s = 255``) reach 0.021. The suppressed luminance (``w_L = 0.1``) lets the exact minimiser
+merge patches differing mainly in lightness (0.026 converged with ``w_L = 1``): the flattening
+behaviour of Bi et al.; the few-iteration default stops well before that.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import torch
+
+from torchiid.core.check import check_finite, check_image, check_same_batch, check_shape
+from torchiid.core.exceptions import ParameterError, ShapeError
+from torchiid.priors.reflectance_terms import StencilL1Term, lab_features, stencil_affinity
+from torchiid.priors.representatives import global_pair_term, representative_pixels
+from torchiid.priors.stencil import Stencil
+from torchiid.solvers.split_bregman import SplitBregmanResult, split_bregman
+
+__all__ = ["ReflectanceTimings", "ReflectanceResult", "solve_reflectance", "shading_from_ratio"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ReflectanceTimings:
+    """Wall-clock seconds spent in the stage (CPU timers; CUDA work is asynchronous).
+
+    Attributes:
+        features: colour features ``r̄`` (CIELab).
+        weights_local: building ``v^l`` (and ``v^m``'s colour factor).
+        weights_mid: building ``v^m``'s proposal-feature factor.
+        weights_global: representatives and ``v^g``.
+        solve: Split-Bregman.
+    """
+
+    features: float
+    weights_local: float
+    weights_mid: float
+    weights_global: float
+    solve: float
+
+
+@dataclass(frozen=True)
+class ReflectanceResult:
+    """Output of :func:`solve_reflectance`; linear RGB.
+
+    Attributes:
+        reflectance: ``R = z`` clamped at 0, ``(B, 3, H, W)``; equals ``ρ`` outside ``mask``.
+        shading: ``S = Σ_c I_c / Σ_c R_c`` (:func:`shading_from_ratio`), ``(B, 1, H, W)``.
+            ``I = R·S`` holds only approximately; the pipeline restores it exactly by
+            ``R = I / S``.
+        solver: the Split-Bregman diagnostics.
+        num_representatives: ``(B,)`` size of ``Q`` (0 when ``C`` is off).
+        timings: :class:`ReflectanceTimings`.
+    """
+
+    reflectance: torch.Tensor
+    shading: torch.Tensor
+    solver: SplitBregmanResult
+    num_representatives: torch.Tensor
+    timings: ReflectanceTimings
+
+
+def shading_from_ratio(
+    image: torch.Tensor, reflectance: torch.Tensor, eps: float = 1e-4
+) -> torch.Tensor:
+    """Gray shading ``S = Σ_c I_c / max(Σ_c R_c, eps)``.
+
+    The ratio of channel sums is the least-squares gray ``S`` for ``I ≈ R·S`` weighted towards the
+    brighter channels and is stable where one channel of ``R`` is near 0.
+
+    Shape:
+        ``(B, 3, H, W)`` twice -> ``(B, 1, H, W)``.
+    """
+    return image.sum(dim=1, keepdim=True) / reflectance.sum(dim=1, keepdim=True).clamp_min(eps)
+
+
+def _on(gamma: float | None) -> bool:
+    return gamma is not None and gamma > 0
+
+
+def solve_reflectance(
+    rho: torch.Tensor,
+    image: torch.Tensor,
+    *,
+    gpca: torch.Tensor | None = None,
+    segments: torch.Tensor | None = None,
+    mask: torch.Tensor | None = None,
+    gamma_l: float | None = 20.0,
+    gamma_m: float | None = 20.0,
+    gamma_g: float | None = 2.0,
+    gamma_a: float = 1.0,
+    theta: float = 40.0,
+    value_scale: float = 255.0,
+    t: float = 0.05,
+    t_g: float | None = None,
+    window: int = 11,
+    luminance_weight: float = 0.1,
+    z0: torch.Tensor | None = None,
+    tol: float = 1e-3,
+    max_outer: int = 3,
+    cg_tol: float = 1e-3,
+    cg_max_iter: int = 5,
+    merge_stencil_terms: bool = True,
+    eps: float = 1e-4,
+) -> ReflectanceResult:
+    """Reflectance formulation (Eq. 12) solved by Split-Bregman.
+
+    Args:
+        rho: intermediate reflectance ``ρ`` of the shading stage, linear RGB ``>= 0``.
+        image: the input ``I``, linear RGB.
+        gpca: PCA-reduced proposal features ``g̊`` for ``B``; ``None`` turns ``B`` off.
+        segments: segment labels for ``Q`` (e.g.
+            :func:`~torchiid.priors.representatives.felzenszwalb_segments`); ``None`` turns
+            ``C`` off.
+        mask: bool, pixels to decompose; pairs touching other pixels are dropped and
+            ``R = ρ`` there.
+        gamma_l: ``γ_l`` of ``A`` (0 or ``None``: off).
+        gamma_m: ``γ_m`` of ``B`` (0 or ``None``: off).
+        gamma_g: ``γ_g`` of ``C`` (0 or ``None``: off).
+        gamma_a: ``γ_a`` of the data term (Eq. 11).
+        theta: Split-Bregman penalty ``θ``.
+        value_scale: intensity unit the gammas and ``θ`` refer to (see module notes); the solver
+            uses ``γ_a · value_scale`` and ``θ · value_scale`` on ``[0, 1]`` values.
+        t: colour weight deviation of Eq. 7 on ``r̄``.
+        t_g: deviation for ``g̊`` in ``v^m`` (default ``t``).
+        window: side of the local window (paper: 11).
+        luminance_weight: weight of ``L`` in ``r̄`` (:func:`lab_features`).
+        z0: warm start (default ``ρ``), e.g. the previous alternation's ``R``.
+        tol: relative-change stopping threshold of the outer iterations.
+        max_outer: Bregman iteration cap.
+        cg_tol: CG tolerance of each ``z`` step.
+        cg_max_iter: CG iteration cap of each ``z`` step.
+        merge_stencil_terms: solve ``A`` and ``B`` as one exactly equivalent term.
+        eps: floor of ``Σ_c R_c`` in the shading ratio.
+
+    Returns:
+        :class:`ReflectanceResult`.
+
+    Shape:
+        rho, image, z0 ``(B, 3, H, W)``; gpca ``(B, d, H, W)``; segments ``(B, H, W)`` long;
+        mask ``(B, 1, H, W)`` bool.
+    """
+    check_image(rho, "rho")
+    check_image(image, "image")
+    check_same_batch(rho, image, names=["rho", "image"])
+    b, _, h, w = rho.shape
+    if not t > 0 or (t_g is not None and not t_g > 0):
+        raise ParameterError(f"deviations t, t_g must be > 0, got {t}, {t_g}")
+    if any(g is not None and g < 0 for g in (gamma_l, gamma_m, gamma_g)):
+        raise ParameterError(f"gammas must be >= 0 or None, got {gamma_l}, {gamma_m}, {gamma_g}")
+    if mask is not None:
+        check_shape(mask, (b, 1, h, w), "mask")
+        if mask.dtype != torch.bool:
+            raise ShapeError(f"expected a bool mask, got {mask.dtype}")
+    use_b = _on(gamma_m) and gpca is not None
+    if _on(gamma_m) and gpca is None:
+        logger.debug("gamma_m > 0 but no gpca given: mid-level term B is off")
+    if gpca is not None:
+        check_shape(gpca, (b, "d", h, w), "gpca")
+        check_finite(gpca, "gpca")
+    use_c = _on(gamma_g) and segments is not None
+    if segments is not None:
+        check_shape(segments, (b, h, w), "segments")
+    stencil = Stencil.square(h, w, window, device=rho.device)
+
+    t0 = time.perf_counter()
+    rbar = lab_features(rho, luminance_weight=luminance_weight)
+    t1 = time.perf_counter()
+    terms: list = []
+    gammas: list[float] = []
+    v_l = stencil_affinity(rbar, stencil, t, mask) if (_on(gamma_l) or use_b) else None
+    t2 = time.perf_counter()
+    v_m = None
+    if use_b:
+        v_m = stencil_affinity(gpca.to(rho.dtype), stencil, t if t_g is None else t_g, mask)
+        v_m.mul_(v_l)
+    t3 = time.perf_counter()
+    if _on(gamma_l) and use_b and merge_stencil_terms:
+        g = gamma_l + gamma_m
+        merged = v_l.mul_(gamma_l / g).add_(v_m, alpha=gamma_m / g)
+        terms.append(StencilL1Term(stencil, merged))
+        gammas.append(g)
+    else:
+        if _on(gamma_l):
+            terms.append(StencilL1Term(stencil, v_l))
+            gammas.append(float(gamma_l))
+        if use_b:
+            terms.append(StencilL1Term(stencil, v_m))
+            gammas.append(float(gamma_m))
+    nrep = torch.zeros(b, dtype=torch.long, device=rho.device)
+    if use_c:
+        reps = representative_pixels(rbar, segments, mask)
+        terms.append(global_pair_term(rbar, reps, t))
+        gammas.append(float(gamma_g))
+        nrep = reps.counts
+    t4 = time.perf_counter()
+    sol = split_bregman(
+        rho,
+        terms,
+        gammas,
+        gamma_a=gamma_a * value_scale,
+        theta=theta * value_scale,
+        z0=z0,
+        tol=tol,
+        max_outer=max_outer,
+        cg_tol=cg_tol,
+        cg_max_iter=cg_max_iter,
+    )
+    t5 = time.perf_counter()
+    refl = sol.z.clamp_min(0.0)
+    if mask is not None:
+        refl = torch.where(mask, refl, rho)
+    shading = shading_from_ratio(image, refl, eps)
+    timings = ReflectanceTimings(t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)
+    return ReflectanceResult(refl, shading, sol, nrep, timings)
