@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from torchiid.core.check import check_image, check_shape
-from torchiid.core.exceptions import ShapeError
+from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.features.semantic import SemanticFeatures, semantic_features
 from torchiid.params import Parameters
 from torchiid.resample import downsample, guided_upsample, working_size
@@ -163,10 +163,18 @@ def decompose(
     big_h, big_w = image.shape[-2:]
     h, w = working_size(big_h, big_w, params.max_side)
     img = downsample(image, (h, w))
-    msk = None if mask is None else (downsample(mask.to(image.dtype), (h, w)) > 0.5)
-    if msk is not None:
-        msk = msk | (~msk.flatten(1).any(1)).view(-1, 1, 1, 1) & mask.flatten(1).any(1).view(
-            -1, 1, 1, 1)
+    msk = None
+    if mask is not None:
+        frac = downsample(mask.to(image.dtype), (h, w))
+        msk = frac > 0.5
+        tiny = ~msk.flatten(1).any(1)  # a small mask can vanish at the working resolution
+        msk[tiny] = frac[tiny] > 0
+        # the outside is blacked out so that it cannot influence any prior
+        img = img * msk
+    if min(h, w) < params.patch_size:
+        raise ParameterError(
+            f"working resolution {w}x{h} (max_side={params.max_side}) is smaller than the "
+            f"{params.patch_size} px patches; raise max_side or lower patch_size")
     if features is None:
         features = semantic_features(img, params)
     times = dict(features.times)

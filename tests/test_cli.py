@@ -1,0 +1,129 @@
+import json
+
+import cv2
+import numpy as np
+import pytest
+from skimage import data
+
+from torchiid.cli import main
+
+FAST = ["--iterations", "1", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def photos(tmp_path_factory):
+    d = tmp_path_factory.mktemp("photos")
+    cat = cv2.resize(data.chelsea(), (96, 72), interpolation=cv2.INTER_AREA)
+    coffee = cv2.resize(data.coffee(), (96, 72), interpolation=cv2.INTER_AREA)
+    cv2.imwrite(str(d / "cat.png"), cat[..., ::-1])
+    cv2.imwrite(str(d / "coffee.jpg"), coffee[..., ::-1])
+    return d
+
+
+def test_decompose_writes_viewable_layers_and_parameters(photos, tmp_path):
+    out = tmp_path / "out"
+    assert main(["decompose", str(photos / "cat.png"), "-o", str(out), "--save-linear",
+                 "--save-npy", "--save-iterations", *FAST]) == 0
+    refl = cv2.imread(str(out / "cat-reflectance.png"), cv2.IMREAD_UNCHANGED)
+    shad = cv2.imread(str(out / "cat-shading.png"), cv2.IMREAD_UNCHANGED)
+    prev = cv2.imread(str(out / "cat-preview.png"), cv2.IMREAD_UNCHANGED)
+    assert refl.shape == (72, 96, 3) and refl.dtype == np.uint8
+    assert shad.shape[:2] == (72, 96) and prev.shape == (72, 3 * 96 + 8, 3)
+    lin = cv2.imread(str(out / "cat-reflectance-linear16.png"), cv2.IMREAD_UNCHANGED)
+    assert lin.dtype == np.uint16
+    r = np.load(out / "cat-reflectance.npy")
+    s = np.load(out / "cat-shading.npy")
+    # the linear layers multiply back to the linear input
+    from torchiid.io import load_image
+
+    img = load_image(photos / "cat.png").image.permute(1, 2, 0).numpy()
+    assert s.shape == (72, 96)
+    assert np.allclose(r * s[..., None], img, atol=1e-5)
+    params = json.loads((out / "cat-params.json").read_text())
+    assert params["method"] == "semantic" and params["parameters"]["iterations"] == 1
+    assert (out / "cat-iter1-sigma.png").exists() and (out / "cat-iter1-R.png").exists()
+    assert not list(out.glob(".*"))  # no temporary files left behind
+
+
+def test_existing_outputs_are_not_overwritten(photos, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["decompose", str(photos / "cat.png"), "-o", str(out), *FAST]) == 0
+    before = (out / "cat-reflectance.png").read_bytes()
+    assert main(["decompose", str(photos / "cat.png"), "-o", str(out), *FAST]) == 1
+    assert "exists; pass --overwrite" in capsys.readouterr().err
+    assert (out / "cat-reflectance.png").read_bytes() == before
+    assert main(["decompose", str(photos / "cat.png"), "-o", str(out), "--overwrite",
+                 *FAST]) == 0
+
+
+def test_directory_with_a_bad_file_processes_the_rest(photos, tmp_path, capsys):
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in ("cat.png", "coffee.jpg"):
+        (src / name).write_bytes((photos / name).read_bytes())
+    (src / "broken.png").write_text("not an image")
+    out = tmp_path / "out"
+    assert main(["decompose", str(src), "-o", str(out), *FAST]) == 1
+    err = capsys.readouterr().err
+    assert "broken.png: is not an image" in err and "1 of 3 input(s) failed" in err
+    assert "Traceback" not in err
+    assert (out / "cat-reflectance.png").exists() and (out / "coffee-shading.png").exists()
+    assert not (out / "broken-reflectance.png").exists()
+
+
+def test_retinex_method_and_mask(photos, tmp_path):
+    mask = np.zeros((72, 96), np.uint8)
+    mask[10:60, 10:80] = 255
+    cv2.imwrite(str(tmp_path / "mask.png"), mask)
+    out = tmp_path / "out"
+    assert main(["decompose", str(photos / "cat.png"), "-o", str(out), "--method", "retinex",
+                 "--mask", str(tmp_path / "mask.png"), "--save-npy", "--no-progress"]) == 0
+    assert json.loads((out / "cat-params.json").read_text())["method"] == "retinex"
+    out2 = tmp_path / "out2"
+    assert main(["decompose", str(photos / "cat.png"), "-o", str(out2), "--mask",
+                 str(tmp_path / "mask.png"), "--save-npy", *FAST]) == 0
+    r = np.load(out2 / "cat-reflectance.npy")
+    assert np.all(r[:10] == 0) and np.all(r[60:] == 0) and r[30, 40].sum() > 0
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["decompose", "missing.png", "-o", "{out}"], "missing.png: no such file"),
+        (["decompose", "{cat}", "-o", "{out}", "--preset", "fastest"], "unknown preset"),
+        (["decompose", "{cat}", "-o", "{out}", "--variant", "v9"], "unknown variant"),
+        (["decompose", "{cat}", "-o", "{out}", "--params", "{bad}"], "Invalid parameter: foo"),
+        (["decompose", "{cat}", "-o", "{out}", "--iterations", "0"], "--iterations must be"),
+        (["decompose", "{cat}", "-o", "{cat}"], "is not a directory"),
+    ],
+)
+def test_errors_are_one_line_without_traceback(photos, tmp_path, capsys, args, message):
+    (tmp_path / "bad.json").write_text('{"foo": 1}')
+    subs = {"out": str(tmp_path / "out"), "cat": str(photos / "cat.png"),
+            "bad": str(tmp_path / "bad.json")}
+    argv = [a.format(**subs) for a in args] + ["--no-progress"]
+    assert main(argv) != 0
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def test_features_command_writes_pictures_and_timings(photos, tmp_path, capsys):
+    out = tmp_path / "feat"
+    assert main(["features", str(photos / "cat.png"), "-o", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "selective search" in printed and "patch features" in printed
+    for name in ("cat-gpca.png", "cat-proposals.png", "cat-patch-grid.png"):
+        img = cv2.imread(str(out / name), cv2.IMREAD_UNCHANGED)
+        assert img is not None and img.dtype == np.uint8 and img.ndim == 3
+    assert main(["features", str(photos / "cat.png"), "-o", str(out)]) == 2
+    assert "exists; pass --overwrite" in capsys.readouterr().err
+
+
+def test_cuda_request_without_cuda_is_a_clear_error(photos, tmp_path, capsys):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("CUDA is available here")
+    assert main(["decompose", str(photos / "cat.png"), "-o", str(tmp_path), "--device",
+                 "cuda", *FAST]) == 2
+    assert "no CUDA device is available" in capsys.readouterr().err
