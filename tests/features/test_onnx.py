@@ -18,20 +18,6 @@ from torchiid.features.onnx_backend import (
 TOL = 1e-4  # max abs difference; features lie in [0, 6] (ReLU6)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # Tiny inputs: one thread avoids OpenMP oversubscription on a busy 2-core machine.
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-@pytest.fixture(scope="module")
-def onnx_path(tmp_path_factory):
-    return ensure_onnx_model(tmp_path_factory.getbasetemp() / "torchiid-onnx")
-
-
 @pytest.fixture(scope="module")
 def torch_extractor():
     return FeatureMapExtractor(efficientnet_lite0()).eval()

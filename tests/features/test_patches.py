@@ -9,7 +9,7 @@ from skimage import data
 from torchiid.core.exceptions import ImageError, ParameterError, ShapeError
 from torchiid.features import patches as patches_mod
 from torchiid.features.backbone import FeatureMapExtractor, efficientnet_lite0, feature_offset
-from torchiid.features.onnx_backend import OnnxFeatureExtractor, ensure_onnx_model
+from torchiid.features.onnx_backend import OnnxFeatureExtractor
 from torchiid.features.patches import (
     PatchFeatureExtractor,
     _linear_to_srgb,
@@ -19,19 +19,9 @@ from torchiid.features.patches import (
 from torchiid.features.roi import RoIAlign, roi_align
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # Tiny inputs: one thread avoids OpenMP oversubscription on a busy 2-core machine.
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(scope="module")
-def onnx_extractor(tmp_path_factory):
-    # Same cache folder as tests/features/test_onnx.py: the manifest makes it one export.
-    return OnnxFeatureExtractor(ensure_onnx_model(tmp_path_factory.getbasetemp() / "torchiid-onnx"))
+def onnx_extractor(onnx_path):
+    return OnnxFeatureExtractor(onnx_path)
 
 
 @pytest.fixture(scope="module")
