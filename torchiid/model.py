@@ -155,7 +155,7 @@ def decompose(
         True
     """
     from torchiid.stages.reflectance import solve_reflectance
-    from torchiid.stages.shading import solve_shading
+    from torchiid.stages.shading import ShadingSystemCache, solve_shading
 
     params = params if params is not None else Parameters.preset("default")
     t_start = time.perf_counter()
@@ -186,6 +186,7 @@ def decompose(
     use_g = params.use_sc or params.use_sp
     s_prev = r_prev = None
     sigma = rho = refl = None
+    shading_cache = ShadingSystemCache()  # S_c, S_m, S_l are built once per image
     layers: list[IterationLayers] = []
     for k in range(1, params.iterations + 1):
         t0 = time.perf_counter()
@@ -207,7 +208,7 @@ def decompose(
                 lle_k=params.lle_k, lle_reg=params.lle_reg,
                 lle_neighbours=params.lle_neighbours, seed=params.seed,
                 x0=s_prev, tol=params.cg_tol, max_iter=params.cg_max_iter, warn=False,
-                levels=1 if s_prev is not None else 3,
+                levels=1 if s_prev is not None else 3, cache=shading_cache,
             )
             s_prev = sh.log_shading
             sigma, rho = sh.shading, sh.reflectance

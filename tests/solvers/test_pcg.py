@@ -121,3 +121,32 @@ def test_callable_preconditioner_and_image_shaped_input():
     b = torch.randn(2, 1, 5, 6, dtype=torch.float64)
     res = pcg(mv, b, precond=lambda r: r / (w + 2), tol=1e-10)
     torch.testing.assert_close(mv(res.x), b, atol=1e-8, rtol=0)
+
+
+def test_skipping_the_final_true_residual_keeps_the_iterates():
+    mats = [_spd(30, s, cond=1e3) for s in range(2)]
+    b = torch.randn(2, 30, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    pre = torch.stack([1 / m.diagonal() for m in mats])
+    full = pcg(_batch_matvec(mats), b, precond=pre, tol=1e-12, max_iter=7, warn=False)
+    fast = pcg(
+        _batch_matvec(mats), b, precond=pre, tol=1e-12, max_iter=7, warn=False, true_residual=False
+    )
+    assert torch.equal(full.x, fast.x) and full.iterations == fast.iterations == 7
+    # in float64 the recursive residual equals the true one to rounding
+    torch.testing.assert_close(fast.residual, full.residual, rtol=1e-6, atol=1e-12)
+
+
+def test_channels_last_input_gives_the_same_answer():
+    g = torch.Generator().manual_seed(0)
+    w = torch.rand(2, 3, 6, 5, generator=g, dtype=torch.float64) + 0.5
+    b = torch.randn(2, 3, 6, 5, generator=g, dtype=torch.float64)
+
+    def mv(x):
+        return w * x + 0.1 * x.roll(1, dims=-1) + 0.1 * x.roll(-1, dims=-1)
+
+    ref = pcg(mv, b, x0=torch.zeros_like(b), tol=1e-10)
+    cl = b.to(memory_format=torch.channels_last)
+    res = pcg(mv, cl, x0=torch.zeros_like(cl), tol=1e-10)
+    torch.testing.assert_close(res.x, ref.x)
+    assert res.x.is_contiguous()
+    torch.testing.assert_close(w * ref.x + 0.1 * ref.x.roll(1, -1) + 0.1 * ref.x.roll(-1, -1), b)

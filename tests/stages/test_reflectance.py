@@ -107,3 +107,15 @@ def test_errors():
         solve_reflectance(rho, s.image, gamma_l=-1.0)
     with pytest.raises(ParameterError, match="deviations t, t_g must be > 0"):
         solve_reflectance(rho, s.image, t=0.0)
+
+
+def test_channels_last_inputs_give_the_same_answer():
+    s, rho, gpca = _scene(h=24, w=32)
+    kw = dict(gpca=gpca, segments=s.labels, max_outer=2, cg_max_iter=3, window=5)
+    ref = solve_reflectance(rho, s.image, **kw)
+    cl = torch.channels_last
+    r = solve_reflectance(
+        rho.to(memory_format=cl), s.image.to(memory_format=cl), z0=rho.to(memory_format=cl), **kw
+    )
+    torch.testing.assert_close(r.reflectance, ref.reflectance, atol=1e-6, rtol=1e-6)
+    assert r.solver.z.is_contiguous()

@@ -121,3 +121,35 @@ def test_errors_and_warning():
         solve_shading(syn.image, x0=torch.zeros(1, 1, 15, 16, dtype=syn.image.dtype))
     with pytest.warns(ConvergenceWarning, match="shading PCG"):
         solve_shading(syn.image, **kw, max_iter=2, tol=1e-10)
+
+
+def test_cache_reuses_fixed_terms_and_gives_the_same_answer():
+    from torchiid.stages.shading import ShadingSystemCache
+
+    syn, kw = _inputs(24, 20, seed=4, stride=6)
+    cache = ShadingSystemCache()
+    base = syn.reflectance
+    opts = dict(tol=1e-9, max_iter=2000, levels=1)
+    first = solve_shading(syn.image, **kw, cache=cache, **opts)
+    assert cache.hits == 0 and set(cache.terms) == {"S_c", "S_m", "S_l"}
+    # second alternation: new matting base, tau-scaled weights
+    lam = dict(lambda_g=0.024, lambda_m=0.024, lambda_l=2 / 1.2)
+    again = solve_shading(
+        syn.image, **kw, base_image=base, cache=cache, x0=first.log_shading, **lam, **opts
+    )
+    assert cache.hits == 3
+    plain = solve_shading(syn.image, **kw, base_image=base, **lam, **opts)
+    torch.testing.assert_close(again.log_shading, plain.log_shading, rtol=0, atol=1e-6)
+    # a different image is not served from the cache
+    other = solve_shading(syn.image.flip(-1).contiguous(), **kw, cache=cache, **opts)
+    assert cache.hits == 5  # S_c and S_m (features unchanged) reused, S_l rebuilt
+    ref = solve_shading(syn.image.flip(-1).contiguous(), **kw, **opts)
+    torch.testing.assert_close(other.log_shading, ref.log_shading, rtol=0, atol=1e-6)
+
+
+def test_channels_last_image_gives_the_same_answer():
+    syn, kw = _inputs(20, 16, seed=6, stride=5)
+    img = syn.image.to(memory_format=torch.channels_last)
+    a = solve_shading(syn.image, **kw, tol=1e-9, max_iter=2000)
+    b = solve_shading(img, **kw, tol=1e-9, max_iter=2000)
+    torch.testing.assert_close(a.log_shading, b.log_shading, rtol=0, atol=1e-7)

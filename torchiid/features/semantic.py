@@ -64,6 +64,7 @@ def semantic_features(image: torch.Tensor, params: Parameters) -> SemanticFeatur
     from torchiid.priors.shading_terms import shading_stencil
 
     times: dict[str, float] = {}
+    image = image.contiguous()  # channels-last strides slow the per-pixel torch ops down
     b, _, h, w = image.shape
     centers = feats = sim = gpca = segs = mid = None
     need_sc = params.stage1 and params.use_sc and params.lambda_g > 0

@@ -254,9 +254,8 @@ class StencilL1Term(_L1Term):
             l1 += torch.linalg.vector_norm(u.flatten(1), 1, dim=1)
             bk = b[:, :, k, yi, xi]
             u += bk
-            bn = u.clamp(-lam, lam)
-            bk.copy_(bn)
-            e = u.add_(bn, alpha=-2.0).mul_(wk)
+            torch.clamp(u, -lam, lam, out=bk)  # the new b, written straight into the state
+            e = u.sub_(bk, alpha=2.0).mul_(wk)
             rhs[:, :, yi, xi] += e
             rhs[:, :, yj, xj] -= e
         return b, rhs, l1

@@ -129,7 +129,7 @@ class Stencil:
         return self.adjoint(weights.unsqueeze(1) * self.apply(x))
 
     def laplacian_diagonal(self, weights: torch.Tensor) -> torch.Tensor:
-        """Diagonal of ``M^T diag(w) M``: ``(B, K, H, W) -> (B, 1, H, W)`` (Jacobi preconditioner)."""
+        """Diagonal of ``M^T diag(w) M``: ``(B, K, H, W) -> (B, 1, H, W)`` (Jacobi)."""
         w = weights * self.valid.to(weights.dtype)
         out = w.sum(dim=1, keepdim=True)
         h, wd = self.height, self.width

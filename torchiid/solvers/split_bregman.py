@@ -111,7 +111,8 @@ def split_bregman(
         raise ParameterError(
             f"need max_outer >= 0, cg_max_iter >= 1; got {max_outer}, {cg_max_iter}"
         )
-    z = rho.clone() if z0 is None else z0.clone()
+    rho = rho.contiguous()  # channels-last strides make the stencil products ~5x slower
+    z = (rho if z0 is None else z0).clone(memory_format=torch.contiguous_format)
     if z.shape != rho.shape:
         raise ShapeError(f"z0 has shape {tuple(z.shape)} but rho has shape {tuple(rho.shape)}")
     check_finite(z, "z0")
@@ -146,10 +147,11 @@ def split_bregman(
 
     def matvec(x: torch.Tensor) -> torch.Tensor:
         xi = x.view(bsz, c, h, w)
-        out = 2.0 * gamma_a * xi
+        out = None
         for t, _ in active_terms:
-            out = out + theta * t.normal_matvec(xi)
-        return out.view(bsz * c, 1, h, w)
+            y = t.normal_matvec(xi)  # a fresh tensor: accumulate in place
+            out = y if out is None else out.add_(y)
+        return out.mul_(theta).add_(xi, alpha=2.0 * gamma_a).view(bsz * c, 1, h, w)
 
     cg_total = 0
     for it in range(max_outer):
@@ -161,6 +163,7 @@ def split_bregman(
             tol=cg_tol,
             max_iter=cg_max_iter,
             warn=False,
+            true_residual=False,
         )
         cg_total += res.iterations
         cg_res = torch.where(active, res.residual.view(bsz, c).amax(dim=1), cg_res)

@@ -174,6 +174,10 @@ def solve_reflectance(
     check_image(rho, "rho")
     check_image(image, "image")
     check_same_batch(rho, image, names=["rho", "image"])
+    # Channels-last inputs (e.g. a permuted HxWx3 array) make every per-offset slice op
+    # stride over interleaved channels, about 5x slower: work on contiguous planes.
+    rho, image = rho.contiguous(), image.contiguous()
+    z0 = None if z0 is None else z0.contiguous()
     b, _, h, w = rho.shape
     if not t > 0 or (t_g is not None and not t_g > 0):
         raise ParameterError(f"deviations t, t_g must be > 0, got {t}, {t_g}")

@@ -44,7 +44,13 @@ from torchiid.priors.quadratic import QuadraticTerm, SumQuadratic
 from torchiid.priors.shading_terms import intensity, midlevel_term, retinex_term, shading_stencil
 from torchiid.solvers.pcg import pcg
 
-__all__ = ["ShadingDiagnostics", "ShadingResult", "build_shading_system", "solve_shading"]
+__all__ = [
+    "ShadingDiagnostics",
+    "ShadingResult",
+    "ShadingSystemCache",
+    "build_shading_system",
+    "solve_shading",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -88,6 +94,38 @@ class ShadingResult:
 
 
 _MIN_COARSE = 16
+
+
+@dataclass
+class ShadingSystemCache:
+    """Terms of Eq. 1 that do not change between the alternations on one image.
+
+    ``S_c`` (patch features), ``S_m`` (proposal similarities) and ``S_l`` (the image) depend
+    only on Stage 0 and the input, not on the previous reflectance, so the pipeline builds
+    them once and reuses them in every alternation (the weights ``lambda`` are applied
+    afterwards, so the tau schedule of §3.4 is unaffected). Only the matting term ``S_p``,
+    whose base image is the previous reflectance, is rebuilt. Keep one cache per image
+    batch; an entry is reused only when its inputs (same tensors, unmodified) and
+    parameters match, otherwise it is rebuilt.
+
+    Attributes:
+        terms: name -> (key of the inputs, the unweighted term).
+        hits: how many builds were skipped.
+    """
+
+    terms: dict[str, tuple[tuple, QuadraticTerm]] = field(default_factory=dict)
+    hits: int = 0
+
+
+def _key(*items: object) -> tuple:
+    """Identity of the inputs of a term: tensors by storage, shape and version."""
+    out: list[object] = []
+    for it in items:
+        if isinstance(it, torch.Tensor):
+            out.append((it.data_ptr(), tuple(it.shape), it.dtype, it._version))
+        else:
+            out.append(it)
+    return tuple(out)
 
 
 def _coarse_inputs(
@@ -165,6 +203,7 @@ def build_shading_system(
     lle_reg: float = 1e-3,
     lle_neighbours: str = "knn",
     seed: int = 0,
+    cache: ShadingSystemCache | None = None,
 ) -> tuple[SumQuadratic, dict[str, float]]:
     """Assemble ``Psi`` (Eq. 1) without the anchor; see :func:`solve_shading` for the arguments.
 
@@ -172,6 +211,10 @@ def build_shading_system(
         ``(system, times)``: the weighted sum of the active terms and the seconds per term.
     """
     check_image(image, "image", channels=3, min_side=3)
+    given = image  # cache keys refer to the caller's tensors
+    # channels-last strides (a permuted HxWx3 array) slow every shifted product down
+    image = image.contiguous()
+    base_image = None if base_image is None else base_image.contiguous()
     b, _, h, w = image.shape
     dev, dt = image.device, image.dtype
     if mask is not None:
@@ -187,9 +230,16 @@ def build_shading_system(
     times: dict[str, float] = {}
     stencil = shading_stencil(h, w, device=dev)
 
-    def timed(name: str, lam: float, fn) -> None:  # noqa: ANN001
+    def timed(name: str, lam: float, fn, key: tuple | None = None) -> None:  # noqa: ANN001
         t0 = time.perf_counter()
-        term = fn()
+        hit = cache is not None and key is not None and name in cache.terms
+        if hit and cache.terms[name][0] == key:
+            term = cache.terms[name][1]
+            cache.hits += 1
+        else:
+            term = fn()
+            if cache is not None and key is not None:
+                cache.terms[name] = (key, term)
         _sync(dev)
         times[name] = time.perf_counter() - t0
         terms.append((lam, term))
@@ -211,6 +261,19 @@ def build_shading_system(
                 mask=mask,
                 seed=seed,
             ),
+            _key(
+                patch_centers,
+                patch_features,
+                h,
+                w,
+                lle_k,
+                lle_reg,
+                lle_neighbours,
+                mask,
+                seed,
+                dt,
+                dev,
+            ),
         )
     if use_sp and lambda_g > 0:
         if base_image is not None:
@@ -226,9 +289,19 @@ def build_shading_system(
             ).as_stencil(),
         )
     if similarity is not None and lambda_m > 0:
-        timed("S_m", lambda_m, lambda: midlevel_term(similarity.to(dt), stencil, t_m, mask))
+        timed(
+            "S_m",
+            lambda_m,
+            lambda: midlevel_term(similarity.to(dt), stencil, t_m, mask),
+            _key(similarity, t_m, mask, dt),
+        )
     if lambda_l > 0:
-        timed("S_l", lambda_l, lambda: retinex_term(image, stencil, t_c, t_b, dark_eps, mask))
+        timed(
+            "S_l",
+            lambda_l,
+            lambda: retinex_term(image, stencil, t_c, t_b, dark_eps, mask),
+            _key(given, t_c, t_b, dark_eps, mask),
+        )
     if not terms:
         raise ParameterError("every shading term is switched off; enable at least one")
     return SumQuadratic(terms), times
@@ -264,6 +337,7 @@ def solve_shading(
     warn: bool = True,
     levels: int = 5,
     coarse_max_iter: int | None = None,
+    cache: ShadingSystemCache | None = None,
 ) -> ShadingResult:
     """Solve the shading energy of Eq. 1 for ``s = log sigma``; ``rho = I / sigma``.
 
@@ -304,6 +378,8 @@ def solve_shading(
             ("cascadic" CG). The answer is the full-resolution minimiser either way; only the
             iteration count changes.
         coarse_max_iter: PCG iteration cap on the coarse levels (default ``max_iter``).
+        cache: a :class:`ShadingSystemCache` kept across the alternations on one image:
+            ``S_c``, ``S_m`` and ``S_l`` are then built once (same result, less time).
 
     Returns:
         :class:`ShadingResult`.
@@ -322,8 +398,9 @@ def solve_shading(
         similarity=similarity, base_image=base_image, mask=mask, lambda_g=lambda_g,
         lambda_m=lambda_m, lambda_l=lambda_l, use_sc=use_sc, use_sp=use_sp, t_c=t_c, t_b=t_b,
         t_m=t_m, matting_eps=matting_eps, dark_eps=dark_eps, base_sigma=base_sigma,
-        lle_k=lle_k, lle_reg=lle_reg, lle_neighbours=lle_neighbours, seed=seed,
+        lle_k=lle_k, lle_reg=lle_reg, lle_neighbours=lle_neighbours, seed=seed, cache=cache,
     )  # fmt: skip
+    image = image.contiguous()
     b, _, h, w = image.shape
     dev, dt = image.device, image.dtype
     m = torch.ones(b, 1, h, w, dtype=dt, device=dev) if mask is None else mask.to(dt)
@@ -340,8 +417,8 @@ def solve_shading(
 
     def matvec(x: torch.Tensor) -> torch.Tensor:
         if mask is None:
-            return system.matvec(x) + extra * x
-        return m * system.matvec(m * x) + extra * x
+            return system.matvec(x).addcmul_(extra, x)
+        return system.matvec(m * x).mul_(m).addcmul_(extra, x)
 
     precond = 1 / (diag + alpha * m + pinned)
     if x0 is None and levels > 1 and min(h, w) >= 2 * _MIN_COARSE:
