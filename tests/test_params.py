@@ -14,6 +14,12 @@ def test_paper_preset_has_the_papers_values():
     assert (p.patch_size, p.patch_stride, p.lle_k) == (60, 30, 10)
 
 
+def test_default_preset_differs_from_paper_only_where_tuned():
+    paper, default = Parameters.preset("paper").to_dict(), Parameters.preset("default").to_dict()
+    assert {k for k in paper if paper[k] != default[k]} == {"cg_max_iter"}
+    assert Parameters.preset("paper") == Parameters()
+
+
 def test_json_roundtrip_and_unknown_keys(tmp_path):
     p = Parameters.preset("default").replace(iterations=3, gamma_l=7.5)
     path = tmp_path / "p.json"

