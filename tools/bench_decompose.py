@@ -1,7 +1,7 @@
 """Benchmark the full method (:func:`torchiid.model.decompose`) stage by stage.
 
 Usage: python tools/bench_decompose.py [--sizes 256 512 1024] [--repeats 3] [--device cpu]
-       [--threads N] [--iterations 5] [--image chelsea] [--params file.json]
+       [--threads N] [--iterations 5] [--image chelsea] [--preset default] [--params file.json]
 
 For every size (the long side; 4:3 photos made by resizing a ``skimage.data`` image) the
 decomposition runs ``--repeats`` times after one warm-up run, in a fresh subprocess per size
@@ -55,7 +55,8 @@ def _worker(args: argparse.Namespace) -> None:
         torch.set_num_threads(args.threads)
     dev = torch.device(args.device)
     x = _image(args.image, args.size).to(dev)
-    params = Parameters.from_json(args.params) if args.params else Parameters()
+    base = Parameters.preset(args.preset)
+    params = Parameters.from_json(args.params, base=base) if args.params else base
     params = params.replace(iterations=args.iterations)
 
     def sync() -> None:
@@ -92,7 +93,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=0)
     ap.add_argument("--iterations", type=int, default=5)
     ap.add_argument("--image", default="chelsea")
-    ap.add_argument("--params", default="", help="JSON parameter file over the defaults")
+    ap.add_argument("--params", default="", help="JSON parameter file over the preset")
+    ap.add_argument("--preset", default="default", help="parameter preset (default, paper)")
     ap.add_argument("--size", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -130,6 +132,8 @@ def main() -> None:
             args.image,
             "--params",
             args.params,
+            "--preset",
+            args.preset,
         ]
         proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
         if proc.returncode != 0:
