@@ -22,8 +22,21 @@ def photos(tmp_path_factory):
 
 def test_decompose_writes_viewable_layers_and_parameters(photos, tmp_path):
     out = tmp_path / "out"
-    assert main(["decompose", str(photos / "cat.png"), "-o", str(out), "--save-linear",
-                 "--save-npy", "--save-iterations", *FAST]) == 0
+    assert (
+        main(
+            [
+                "decompose",
+                str(photos / "cat.png"),
+                "-o",
+                str(out),
+                "--save-linear",
+                "--save-npy",
+                "--save-iterations",
+                *FAST,
+            ]
+        )
+        == 0
+    )
     refl = cv2.imread(str(out / "cat-reflectance.png"), cv2.IMREAD_UNCHANGED)
     shad = cv2.imread(str(out / "cat-shading.png"), cv2.IMREAD_UNCHANGED)
     prev = cv2.imread(str(out / "cat-preview.png"), cv2.IMREAD_UNCHANGED)
@@ -52,8 +65,7 @@ def test_existing_outputs_are_not_overwritten(photos, tmp_path, capsys):
     assert main(["decompose", str(photos / "cat.png"), "-o", str(out), *FAST]) == 1
     assert "exists; pass --overwrite" in capsys.readouterr().err
     assert (out / "cat-reflectance.png").read_bytes() == before
-    assert main(["decompose", str(photos / "cat.png"), "-o", str(out), "--overwrite",
-                 *FAST]) == 0
+    assert main(["decompose", str(photos / "cat.png"), "-o", str(out), "--overwrite", *FAST]) == 0
 
 
 def test_directory_with_a_bad_file_processes_the_rest(photos, tmp_path, capsys):
@@ -76,12 +88,40 @@ def test_retinex_method_and_mask(photos, tmp_path):
     mask[10:60, 10:80] = 255
     cv2.imwrite(str(tmp_path / "mask.png"), mask)
     out = tmp_path / "out"
-    assert main(["decompose", str(photos / "cat.png"), "-o", str(out), "--method", "retinex",
-                 "--mask", str(tmp_path / "mask.png"), "--save-npy", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "decompose",
+                str(photos / "cat.png"),
+                "-o",
+                str(out),
+                "--method",
+                "retinex",
+                "--mask",
+                str(tmp_path / "mask.png"),
+                "--save-npy",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert json.loads((out / "cat-params.json").read_text())["method"] == "retinex"
     out2 = tmp_path / "out2"
-    assert main(["decompose", str(photos / "cat.png"), "-o", str(out2), "--mask",
-                 str(tmp_path / "mask.png"), "--save-npy", *FAST]) == 0
+    assert (
+        main(
+            [
+                "decompose",
+                str(photos / "cat.png"),
+                "-o",
+                str(out2),
+                "--mask",
+                str(tmp_path / "mask.png"),
+                "--save-npy",
+                *FAST,
+            ]
+        )
+        == 0
+    )
     r = np.load(out2 / "cat-reflectance.npy")
     assert np.all(r[:10] == 0) and np.all(r[60:] == 0) and r[30, 40].sum() > 0
 
@@ -99,8 +139,11 @@ def test_retinex_method_and_mask(photos, tmp_path):
 )
 def test_errors_are_one_line_without_traceback(photos, tmp_path, capsys, args, message):
     (tmp_path / "bad.json").write_text('{"foo": 1}')
-    subs = {"out": str(tmp_path / "out"), "cat": str(photos / "cat.png"),
-            "bad": str(tmp_path / "bad.json")}
+    subs = {
+        "out": str(tmp_path / "out"),
+        "cat": str(photos / "cat.png"),
+        "bad": str(tmp_path / "bad.json"),
+    }
     argv = [a.format(**subs) for a in args] + ["--no-progress"]
     assert main(argv) != 0
     err = capsys.readouterr().err
@@ -124,6 +167,8 @@ def test_cuda_request_without_cuda_is_a_clear_error(photos, tmp_path, capsys):
 
     if torch.cuda.is_available():
         pytest.skip("CUDA is available here")
-    assert main(["decompose", str(photos / "cat.png"), "-o", str(tmp_path), "--device",
-                 "cuda", *FAST]) == 2
+    assert (
+        main(["decompose", str(photos / "cat.png"), "-o", str(tmp_path), "--device", "cuda", *FAST])
+        == 2
+    )
     assert "no CUDA device is available" in capsys.readouterr().err

@@ -82,8 +82,9 @@ def test_mask_restricts_every_prior():
     assert torch.allclose(prod[inside], s.image[inside], atol=1e-6)
     # what lies outside the mask cannot change the result inside
     other = s.image.clone()
-    other[~mask.expand(1, 3, -1, -1)] = torch.rand(int((~inside).sum()),
-                                                  generator=torch.Generator().manual_seed(1))
+    other[~mask.expand(1, 3, -1, -1)] = torch.rand(
+        int((~inside).sum()), generator=torch.Generator().manual_seed(1)
+    )
     out2 = decompose(other, FAST, mask=mask)
     assert torch.allclose(out.reflectance, out2.reflectance, atol=1e-5)
 
@@ -116,10 +117,18 @@ def test_progress_is_reported():
         (torch.rand(1, 3, 40, 80), {}, ImageError, "at least 60 px"),
         (torch.full((1, 3, 64, 64), float("nan")), {}, ImageError, "NaN"),
         (torch.rand(1, 4, 64, 64), {}, ShapeError, r"expected image of shape \(B, 3, H, W\)"),
-        (torch.rand(1, 3, 64, 64), {"mask": torch.ones(1, 1, 32, 32, dtype=torch.bool)},
-         ShapeError, "mask"),
-        (torch.rand(1, 3, 64, 64), {"mask": torch.zeros(1, 1, 64, 64, dtype=torch.bool)},
-         ShapeError, "empty"),
+        (
+            torch.rand(1, 3, 64, 64),
+            {"mask": torch.ones(1, 1, 32, 32, dtype=torch.bool)},
+            ShapeError,
+            "mask",
+        ),
+        (
+            torch.rand(1, 3, 64, 64),
+            {"mask": torch.zeros(1, 1, 64, 64, dtype=torch.bool)},
+            ShapeError,
+            "empty",
+        ),
         (torch.rand(1, 3, 64, 64), {"mask": torch.ones(1, 1, 64, 64)}, ShapeError, "bool mask"),
     ],
 )

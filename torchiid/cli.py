@@ -23,10 +23,17 @@ log = logging.getLogger("torchiid")
 
 
 def _add_common_image_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--linear", action="store_true",
-                   help="8/16-bit input files hold linear values (default: sRGB-encoded)")
-    p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
-                   help="where to run (auto: CUDA when available)")
+    p.add_argument(
+        "--linear",
+        action="store_true",
+        help="8/16-bit input files hold linear values (default: sRGB-encoded)",
+    )
+    p.add_argument(
+        "--device",
+        default="auto",
+        choices=["auto", "cpu", "cuda"],
+        help="where to run (auto: CUDA when available)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -38,46 +45,76 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log details to stderr")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    d = sub.add_parser("decompose", help="split photos into reflectance and shading",
-                       description="Split photos into reflectance and shading.")
+    d = sub.add_parser(
+        "decompose",
+        help="split photos into reflectance and shading",
+        description="Split photos into reflectance and shading.",
+    )
     d.add_argument("inputs", nargs="+", type=Path, help="image files and/or directories")
     d.add_argument("-o", "--output", type=Path, required=True, help="output directory")
-    d.add_argument("--method", default="semantic", choices=["semantic", "retinex"],
-                   help="semantic: the paper's method (default); retinex: Grosse et al.'s "
-                        "colour Retinex baseline")
+    d.add_argument(
+        "--method",
+        default="semantic",
+        choices=["semantic", "retinex"],
+        help="semantic: the paper's method (default); retinex: Grosse et al.'s "
+        "colour Retinex baseline",
+    )
     d.add_argument("--preset", default="default", help="parameter preset: default or paper")
     d.add_argument("--params", type=Path, help="JSON file of parameters (over the preset)")
     d.add_argument("--variant", help="ablation variant v1..v7 or baseline1..baseline3")
     d.add_argument("--iterations", type=int, help="alternations k (overrides the preset)")
-    d.add_argument("--max-side", type=int,
-                   help="working resolution: longer side in px (0 = full resolution)")
-    d.add_argument("--mask", type=Path,
-                   help="mask image (nonzero = inside); applies to every input")
-    d.add_argument("--save-linear", action="store_true",
-                   help="also write 16-bit linear PNGs of reflectance and shading")
-    d.add_argument("--save-npy", action="store_true",
-                   help="also write float32 linear .npy arrays of reflectance and shading")
-    d.add_argument("--save-iterations", action="store_true",
-                   help="write every iteration's sigma, rho, R, S (sRGB PNGs)")
+    d.add_argument(
+        "--max-side", type=int, help="working resolution: longer side in px (0 = full resolution)"
+    )
+    d.add_argument(
+        "--mask", type=Path, help="mask image (nonzero = inside); applies to every input"
+    )
+    d.add_argument(
+        "--save-linear",
+        action="store_true",
+        help="also write 16-bit linear PNGs of reflectance and shading",
+    )
+    d.add_argument(
+        "--save-npy",
+        action="store_true",
+        help="also write float32 linear .npy arrays of reflectance and shading",
+    )
+    d.add_argument(
+        "--save-iterations",
+        action="store_true",
+        help="write every iteration's sigma, rho, R, S (sRGB PNGs)",
+    )
     d.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     d.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_common_image_options(d)
 
-    f = sub.add_parser("features", help="write pictures of the Stage 0 semantic features",
-                       description="Write the PCA image of g_i, proposal masks and the patch "
-                                   "grid of one photo, and print timings per step.")
+    f = sub.add_parser(
+        "features",
+        help="write pictures of the Stage 0 semantic features",
+        description="Write the PCA image of g_i, proposal masks and the patch "
+        "grid of one photo, and print timings per step.",
+    )
     f.add_argument("input", type=Path, help="an image file")
     f.add_argument("-o", "--output", type=Path, required=True, help="output directory")
-    f.add_argument("--mode", default="shared", choices=["shared", "crop"],
-                   help="patch feature mode")
+    f.add_argument(
+        "--mode", default="shared", choices=["shared", "crop"], help="patch feature mode"
+    )
     f.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     _add_common_image_options(f)
 
-    e = sub.add_parser("export-onnx", help="export the EfficientNet-Lite0 feature extractor",
-                       description="Export the CNN feature extractor to ONNX and record its "
-                                   "SHA-256 in the manifest.")
-    e.add_argument("-o", "--output-dir", type=Path, default=None,
-                   help="where to write (default: the cache used by the library)")
+    e = sub.add_parser(
+        "export-onnx",
+        help="export the EfficientNet-Lite0 feature extractor",
+        description="Export the CNN feature extractor to ONNX and record its "
+        "SHA-256 in the manifest.",
+    )
+    e.add_argument(
+        "-o",
+        "--output-dir",
+        type=Path,
+        default=None,
+        help="where to write (default: the cache used by the library)",
+    )
 
     from torchiid.commands.eval import add_eval_parser
 
@@ -101,11 +138,13 @@ def collect_inputs(inputs: Sequence[Path]) -> list[Path]:
     out: list[Path] = []
     for p in inputs:
         if p.is_dir():
-            found = sorted(q for q in p.iterdir()
-                           if q.is_file() and q.suffix.lower() in IMAGE_SUFFIXES)
+            found = sorted(
+                q for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_SUFFIXES
+            )
             if not found:
-                raise TorchiidError(f"{p}: directory holds no image files "
-                                    f"({', '.join(sorted(IMAGE_SUFFIXES))})")
+                raise TorchiidError(
+                    f"{p}: directory holds no image files ({', '.join(sorted(IMAGE_SUFFIXES))})"
+                )
             out.extend(found)
         else:
             out.append(p)
@@ -125,7 +164,7 @@ def _cmd_features(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from torchiid.features.onnx_backend import export_to_dir, ensure_onnx_model
+    from torchiid.features.onnx_backend import ensure_onnx_model, export_to_dir
 
     t0 = time.perf_counter()
     path = export_to_dir(args.output_dir) if args.output_dir else ensure_onnx_model()
@@ -143,8 +182,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``torchiid`` console script; returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="torchiid: %(message)s")
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING, format="torchiid: %(message)s"
+    )
     handlers = {
         "decompose": _cmd_decompose,
         "features": _cmd_features,

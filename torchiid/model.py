@@ -1,5 +1,6 @@
-"""The whole method: Stage 0 features, then k alternations of Stage 1 (L2 shading) and
-Stage 2 (L1 reflectance) — Saini & Narayanan, §3 and §3.4.
+"""The whole method (Saini & Narayanan, §3 and §3.4).
+
+Stage 0 features, then k alternations of Stage 1 (L2 shading) and Stage 2 (L1 reflectance).
 
 :func:`decompose` is the functional core and :class:`IntrinsicDecomposer` its ``nn.Module``
 twin. Both take **linear** RGB ``(B, 3, H, W)`` tensors on any device and return a
@@ -97,8 +98,9 @@ def _log_luminance(image: torch.Tensor, eps: float) -> torch.Tensor:
     return y.clamp_min(eps).log()
 
 
-def _check_inputs(image: torch.Tensor, mask: torch.Tensor | None,
-                  params: Parameters) -> tuple[torch.Tensor, torch.Tensor | None]:
+def _check_inputs(
+    image: torch.Tensor, mask: torch.Tensor | None, params: Parameters
+) -> tuple[torch.Tensor, torch.Tensor | None]:
     if isinstance(image, torch.Tensor) and image.dim() == 3:
         image = image[None]
     check_image(image, "image", min_side=params.patch_size)
@@ -174,7 +176,8 @@ def decompose(
     if min(h, w) < params.patch_size:
         raise ParameterError(
             f"working resolution {w}x{h} (max_side={params.max_side}) is smaller than the "
-            f"{params.patch_size} px patches; raise max_side or lower patch_size")
+            f"{params.patch_size} px patches; raise max_side or lower patch_size"
+        )
     if features is None:
         features = semantic_features(img, params)
     times = dict(features.times)
@@ -203,12 +206,21 @@ def decompose(
                 lambda_l=lam_l if params.use_sl else 0.0,
                 use_sc=params.use_sc and features.patch_features is not None,
                 use_sp=params.use_sp,
-                t_c=params.t_c, t_b=params.t_b, t_m=params.t_m,
-                matting_eps=params.matting_eps, dark_eps=params.dark_eps,
-                lle_k=params.lle_k, lle_reg=params.lle_reg,
-                lle_neighbours=params.lle_neighbours, seed=params.seed,
-                x0=s_prev, tol=params.cg_tol, max_iter=params.cg_max_iter, warn=False,
-                levels=1 if s_prev is not None else 3, cache=shading_cache,
+                t_c=params.t_c,
+                t_b=params.t_b,
+                t_m=params.t_m,
+                matting_eps=params.matting_eps,
+                dark_eps=params.dark_eps,
+                lle_k=params.lle_k,
+                lle_reg=params.lle_reg,
+                lle_neighbours=params.lle_neighbours,
+                seed=params.seed,
+                x0=s_prev,
+                tol=params.cg_tol,
+                max_iter=params.cg_max_iter,
+                warn=False,
+                levels=1 if s_prev is not None else 3,
+                cache=shading_cache,
             )
             s_prev = sh.log_shading
             sigma, rho = sh.shading, sh.reflectance
@@ -220,15 +232,20 @@ def decompose(
         t0 = time.perf_counter()
         if params.stage2:
             rr = solve_reflectance(
-                rho.clamp_min(0), img,
+                rho.clamp_min(0),
+                img,
                 gpca=features.gpca if params.use_rm else None,
                 segments=features.segments if params.use_rg else None,
                 mask=msk,
                 gamma_l=gam_l if params.use_rl else 0.0,
                 gamma_m=gam_m if params.use_rm else 0.0,
                 gamma_g=gam_g if params.use_rg else 0.0,
-                gamma_a=gam_a, theta=params.theta, t=params.t,
-                z0=r_prev, tol=params.bregman_tol, max_outer=params.bregman_iter,
+                gamma_a=gam_a,
+                theta=params.theta,
+                t=params.t,
+                z0=r_prev,
+                tol=params.bregman_tol,
+                max_outer=params.bregman_iter,
             )
             refl = rr.reflectance
         else:
@@ -236,11 +253,11 @@ def decompose(
         times[f"reflectance {k}"] = time.perf_counter() - t0
         r_prev = refl
         if return_iterations:
-            layers.append(IterationLayers(sigma=sigma, rho=rho, R=refl,
-                                          S=_gray_shading(img, refl)))
+            layers.append(IterationLayers(sigma=sigma, rho=rho, R=refl, S=_gray_shading(img, refl)))
         # §3.4: strengthen mid-level, global and data terms, weaken local ones
-        lam_g, lam_m, gam_m, gam_g, gam_a = (x * params.tau for x in
-                                             (lam_g, lam_m, gam_m, gam_g, gam_a))
+        lam_g, lam_m, gam_m, gam_g, gam_a = (
+            x * params.tau for x in (lam_g, lam_m, gam_m, gam_g, gam_a)
+        )
         lam_l, gam_l = lam_l / params.tau, gam_l / params.tau
         if progress is not None:
             progress("iteration", k, params.iterations)
@@ -248,17 +265,20 @@ def decompose(
     # final layers at full resolution, I = R * S exactly, S gray with 99th percentile 1
     log_s = _gray_shading(img, refl).log()
     if (h, w) != (big_h, big_w):
-        log_s = guided_upsample(log_s, _log_luminance(img, params.dark_eps),
-                                _log_luminance(image, params.dark_eps))
+        log_s = guided_upsample(
+            log_s, _log_luminance(img, params.dark_eps), _log_luminance(image, params.dark_eps)
+        )
     shading = log_s.exp()
     scale = _percentile_scale(shading, mask)
     shading = (shading / scale).clamp_min(_SHADING_FLOOR)
     reflectance = image / shading
     sig = sigma / _percentile_scale(sigma, msk)
     if (h, w) != (big_h, big_w):
-        sig = guided_upsample(sig.clamp_min(_SHADING_FLOOR).log(),
-                              _log_luminance(img, params.dark_eps),
-                              _log_luminance(image, params.dark_eps)).exp()
+        sig = guided_upsample(
+            sig.clamp_min(_SHADING_FLOOR).log(),
+            _log_luminance(img, params.dark_eps),
+            _log_luminance(image, params.dark_eps),
+        ).exp()
     sig = sig.clamp_min(_SHADING_FLOOR)
     rho_full = image / sig
     if mask is not None:
@@ -266,8 +286,16 @@ def decompose(
         reflectance, shading = reflectance * keep, shading * keep
         sig, rho_full = sig * keep, rho_full * keep
     times["total"] = time.perf_counter() - t_start
-    return Decomposition(reflectance=reflectance, shading=shading, sigma=sig, rho=rho_full,
-                         iterations=tuple(layers), params=params, times=times, mask=mask)
+    return Decomposition(
+        reflectance=reflectance,
+        shading=shading,
+        sigma=sig,
+        rho=rho_full,
+        iterations=tuple(layers),
+        params=params,
+        times=times,
+        mask=mask,
+    )
 
 
 class IntrinsicDecomposer(nn.Module):
@@ -296,5 +324,4 @@ class IntrinsicDecomposer(nn.Module):
 
     def forward(self, image: torch.Tensor, mask: torch.Tensor | None = None) -> Decomposition:
         """Decompose ``image``; see :func:`decompose`."""
-        return decompose(image, self.params, mask=mask,
-                         return_iterations=self.return_iterations)
+        return decompose(image, self.params, mask=mask, return_iterations=self.return_iterations)

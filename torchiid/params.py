@@ -145,14 +145,40 @@ class Parameters:
                     f"parameter {name} must be one of {', '.join(allowed)}, "
                     f"got {getattr(self, name)!r}"
                 )
-        positive = ["patch_size", "patch_stride", "lle_k", "proposal_pca_dim", "iterations",
-                    "cg_max_iter", "bregman_iter", "t_c", "t_b", "t_m", "t", "theta", "tau",
-                    "matting_eps", "dark_eps", "cg_tol", "bregman_tol", "segment_scale"]
+        positive = [
+            "patch_size",
+            "patch_stride",
+            "lle_k",
+            "proposal_pca_dim",
+            "iterations",
+            "cg_max_iter",
+            "bregman_iter",
+            "t_c",
+            "t_b",
+            "t_m",
+            "t",
+            "theta",
+            "tau",
+            "matting_eps",
+            "dark_eps",
+            "cg_tol",
+            "bregman_tol",
+            "segment_scale",
+        ]
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ParameterError(f"parameter {name} must be > 0, got {getattr(self, name)}")
-        nonneg = ["lambda_g", "lambda_m", "lambda_l", "gamma_l", "gamma_m", "gamma_g",
-                  "gamma_a", "lle_reg", "max_side"]
+        nonneg = [
+            "lambda_g",
+            "lambda_m",
+            "lambda_l",
+            "gamma_l",
+            "gamma_m",
+            "gamma_g",
+            "gamma_a",
+            "lle_reg",
+            "max_side",
+        ]
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise ParameterError(f"parameter {name} must be >= 0, got {getattr(self, name)}")

@@ -35,8 +35,12 @@ def _params_from_args(args: argparse.Namespace) -> Parameters:
 
 def output_names(stem: str, args: argparse.Namespace, params: Parameters) -> list[str]:
     """Every file name ``decompose`` writes for an input of this stem."""
-    names = [f"{stem}-reflectance.png", f"{stem}-shading.png", f"{stem}-preview.png",
-             f"{stem}-params.json"]
+    names = [
+        f"{stem}-reflectance.png",
+        f"{stem}-shading.png",
+        f"{stem}-preview.png",
+        f"{stem}-params.json",
+    ]
     if args.save_linear:
         names += [f"{stem}-reflectance-linear16.png", f"{stem}-shading-linear16.png"]
     if args.save_npy:
@@ -53,8 +57,9 @@ def _preview(image: torch.Tensor, refl: torch.Tensor, shading: torch.Tensor) -> 
     return torch.cat([image, gap, refl, gap, shading.expand(3, -1, -1)], dim=2)
 
 
-def _write_outputs(out: Path, stem: str, image: torch.Tensor, result, args, params,
-                   method: str) -> None:
+def _write_outputs(
+    out: Path, stem: str, image: torch.Tensor, result, args, params, method: str
+) -> None:
     refl = result.reflectance[0].cpu()
     shad = result.shading[0].cpu()
     save_image(out / f"{stem}-reflectance.png", refl, "srgb8")
@@ -69,14 +74,21 @@ def _write_outputs(out: Path, stem: str, image: torch.Tensor, result, args, para
     if args.save_iterations and getattr(result, "iterations", None):
         for k, layers in enumerate(result.iterations, start=1):
             for name in ("sigma", "rho", "R", "S"):
-                save_image(out / f"{stem}-iter{k}-{name}.png",
-                           getattr(layers, name)[0].cpu(), "srgb8")
+                save_image(
+                    out / f"{stem}-iter{k}-{name}.png", getattr(layers, name)[0].cpu(), "srgb8"
+                )
     record = params.to_dict() if method == "semantic" else {}
     import json
     import os
 
-    text = json.dumps({"method": method, "input": str(args._current_input),
-                       "parameters": record}, indent=2, sort_keys=True) + "\n"
+    text = (
+        json.dumps(
+            {"method": method, "input": str(args._current_input), "parameters": record},
+            indent=2,
+            sort_keys=True,
+        )
+        + "\n"
+    )
     target = out / f"{stem}-params.json"
     tmp = target.with_name(f".{target.name}.tmp")
     tmp.write_text(text)
@@ -96,8 +108,10 @@ def run_decompose(args: argparse.Namespace) -> int:
     stems: dict[str, Path] = {}
     for p in inputs:
         if p.stem in stems and stems[p.stem] != p:
-            raise TorchiidError(f"two inputs would write the same outputs: {stems[p.stem]} "
-                                f"and {p}; rename one or run them separately")
+            raise TorchiidError(
+                f"two inputs would write the same outputs: {stems[p.stem]} "
+                f"and {p}; rename one or run them separately"
+            )
         stems[p.stem] = p
     out: Path = args.output
     if out.exists() and not out.is_dir():
@@ -106,8 +120,7 @@ def run_decompose(args: argparse.Namespace) -> int:
     shared_mask = None
     show = not args.no_progress
     failures = 0
-    bar = tqdm(inputs, desc="images", unit="img", disable=not show, file=sys.stderr,
-               leave=False)
+    bar = tqdm(inputs, desc="images", unit="img", disable=not show, file=sys.stderr, leave=False)
     for path in bar:
         t0 = time.perf_counter()
         stem = path.stem
@@ -131,22 +144,33 @@ def run_decompose(args: argparse.Namespace) -> int:
                 refl, shad = color_retinex(batch, mask=mbatch)
                 result = SimpleNamespace(reflectance=refl, shading=shad, iterations=())
             else:
-                it_bar = tqdm(total=params.iterations, desc=f"{stem}", unit="it",
-                              disable=not show, file=sys.stderr, leave=False)
+                it_bar = tqdm(
+                    total=params.iterations,
+                    desc=f"{stem}",
+                    unit="it",
+                    disable=not show,
+                    file=sys.stderr,
+                    leave=False,
+                )
 
                 def progress(stage: str, k: int, total: int, _bar=it_bar) -> None:
                     if stage == "iteration":
                         _bar.update(1)
 
                 try:
-                    result = decompose(batch, params, mask=mbatch,
-                                       return_iterations=args.save_iterations,
-                                       progress=progress)
+                    result = decompose(
+                        batch,
+                        params,
+                        mask=mbatch,
+                        return_iterations=args.save_iterations,
+                        progress=progress,
+                    )
                 finally:
                     it_bar.close()
             _write_outputs(out, stem, image, result, args, params, args.method)
-            tqdm.write(f"{path} -> {out}/{stem}-*.png ({time.perf_counter() - t0:.1f} s)",
-                       file=sys.stderr) if show else log.info("%s done", path)
+            tqdm.write(
+                f"{path} -> {out}/{stem}-*.png ({time.perf_counter() - t0:.1f} s)", file=sys.stderr
+            ) if show else log.info("%s done", path)
         except TorchiidError as exc:
             failures += 1
             msg = str(exc)

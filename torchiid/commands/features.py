@@ -5,9 +5,6 @@ from __future__ import annotations
 import argparse
 import time
 
-import numpy as np
-import torch
-
 from torchiid.core.exceptions import TorchiidError
 from torchiid.io import linear_to_srgb, load_image, save_uint8
 
@@ -45,13 +42,18 @@ def run_features(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     grid = patch_grid(h, w)
     feats = patch_features(image, mode=args.mode)
-    timings.append((f"patch features f_b ({args.mode}, {len(grid)} patches)",
-                    time.perf_counter() - t0))
+    timings.append(
+        (f"patch features f_b ({args.mode}, {len(grid)} patches)", time.perf_counter() - t0)
+    )
 
     t0 = time.perf_counter()
     props = selective_search(image.cpu()[0])
-    timings.append((f"selective search ({props.num_proposals} proposals, "
-                    f"{props.num_atoms} atoms)", time.perf_counter() - t0))
+    timings.append(
+        (
+            f"selective search ({props.num_proposals} proposals, {props.num_atoms} atoms)",
+            time.perf_counter() - t0,
+        )
+    )
 
     t0 = time.perf_counter()
     mid = midlevel_features(props)

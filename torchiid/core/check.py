@@ -29,7 +29,7 @@ def check_shape(x: torch.Tensor, shape: Sequence[str | int], name: str = "tensor
     if x.dim() != len(shape):
         raise ShapeError(f"expected {name} of shape {want}, got {tuple(x.shape)}")
     seen: dict[str, int] = {}
-    for dim, sym in zip(x.shape, shape):
+    for dim, sym in zip(x.shape, shape, strict=True):
         if isinstance(sym, int):
             if dim != sym:
                 raise ShapeError(f"expected {name} of shape {want}, got {tuple(x.shape)}")
@@ -84,7 +84,7 @@ def check_same_batch(*tensors: torch.Tensor, names: Sequence[str] | None = None)
     """Check that tensors share batch size and spatial size ``(H, W)``."""
     names = list(names) if names is not None else [f"tensor {i}" for i in range(len(tensors))]
     ref = tensors[0]
-    for t, n in zip(tensors[1:], names[1:]):
+    for t, n in zip(tensors[1:], names[1:], strict=False):
         if t.shape[0] != ref.shape[0] or t.shape[-2:] != ref.shape[-2:]:
             raise ShapeError(
                 f"{n} has shape {tuple(t.shape)} but {names[0]} has shape {tuple(ref.shape)}; "

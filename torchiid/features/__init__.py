@@ -1,5 +1,8 @@
-"""Stage 0 semantic features: CNN patch features ``f_b`` (paper §3.1.1) and selective-search
-mid-level features ``g_i`` (paper §3.1.2)."""
+"""Stage 0 semantic features.
+
+CNN patch features ``f_b`` (paper §3.1.1) and selective-search mid-level features ``g_i``
+(paper §3.1.2).
+"""
 
 from torchiid.features.backbone import (
     EfficientNetLite0,

@@ -69,15 +69,20 @@ def semantic_features(image: torch.Tensor, params: Parameters) -> SemanticFeatur
     centers = feats = sim = gpca = segs = mid = None
     need_sc = params.stage1 and params.use_sc and params.lambda_g > 0
     need_g = (params.stage1 and params.use_sm and params.lambda_m > 0) or (
-        params.stage2 and params.use_rm and params.gamma_m > 0)
+        params.stage2 and params.use_rm and params.gamma_m > 0
+    )
     if need_sc:
         t0 = time.perf_counter()
         grid = patch_grid(h, w, params.patch_size, params.patch_stride)
         centers = grid.centers.to(image.device)
         if params.lle_features == "cnn":
-            feats = patch_features(image, mode=params.feature_mode,
-                                   backend=params.feature_backend, size=params.patch_size,
-                                   stride=params.patch_stride).features
+            feats = patch_features(
+                image,
+                mode=params.feature_mode,
+                backend=params.feature_backend,
+                size=params.patch_size,
+                stride=params.patch_stride,
+            ).features
         else:
             feats = patch_mean_rgb(image, grid.boxes)
         times["patch features"] = time.perf_counter() - t0

@@ -71,8 +71,11 @@ def srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
 
     Shape: any; ``(B, 3, H, W)`` or ``(3, H, W)`` are typical.
     """
-    return kornia.color.rgb_to_linear_rgb(x.clamp(0, 1)) if x.dim() >= 3 and x.shape[-3] == 3 \
+    return (
+        kornia.color.rgb_to_linear_rgb(x.clamp(0, 1))
+        if x.dim() >= 3 and x.shape[-3] == 3
         else torch.where(x <= 0.04045, x / 12.92, ((x.clamp_min(0) + 0.055) / 1.055) ** 2.4)
+    )
 
 
 def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
@@ -195,8 +198,11 @@ def load_mask(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> 
     else:
         inside = (arr.reshape(arr.shape[0], arr.shape[1], -1) > 0).any(axis=2)
     if shape is not None and inside.shape != tuple(shape):
-        raise _fail(path, f"mask is {inside.shape[1]}x{inside.shape[0]} px but the image is "
-                          f"{shape[1]}x{shape[0]} px")
+        raise _fail(
+            path,
+            f"mask is {inside.shape[1]}x{inside.shape[0]} px but the image is "
+            f"{shape[1]}x{shape[0]} px",
+        )
     if not inside.any():
         raise _fail(path, "mask is empty (no pixel inside)")
     return torch.from_numpy(np.ascontiguousarray(inside))[None]
@@ -243,8 +249,11 @@ def save_image(
     else:
         lin = np.clip(arr, 0, 1)
         if encoding in ("srgb8", "srgb16"):
-            lin = linear_to_srgb(torch.from_numpy(lin)).numpy() if lin.ndim == 2 else \
-                linear_to_srgb(torch.from_numpy(lin).permute(2, 0, 1)).permute(1, 2, 0).numpy()
+            lin = (
+                linear_to_srgb(torch.from_numpy(lin)).numpy()
+                if lin.ndim == 2
+                else linear_to_srgb(torch.from_numpy(lin).permute(2, 0, 1)).permute(1, 2, 0).numpy()
+            )
         if encoding == "srgb8":
             payload = np.round(lin * 255).astype(np.uint8)
         elif encoding in ("srgb16", "linear16"):
@@ -261,8 +270,9 @@ def save_uint8(path: str | os.PathLike, rgb: np.ndarray) -> Path:
     """Write an ``(H, W, 3)`` or ``(H, W)`` uint8 picture (already sRGB) atomically as is."""
     rgb = np.asarray(rgb)
     if rgb.dtype != np.uint8 or rgb.ndim not in (2, 3):
-        raise ImageError(f"save_uint8 takes an (H, W[, 3]) uint8 array, got {rgb.dtype} "
-                         f"{rgb.shape}")
+        raise ImageError(
+            f"save_uint8 takes an (H, W[, 3]) uint8 array, got {rgb.dtype} {rgb.shape}"
+        )
     payload = np.ascontiguousarray(rgb[..., ::-1]) if rgb.ndim == 3 else rgb
     path = Path(path)
     _atomic_write(path, payload)

@@ -90,8 +90,9 @@ class Stencil:
     @cached_property
     def valid(self) -> torch.Tensor:
         """``(K, H, W)`` bool mask: pair ``(i, i + offset_k)`` lies inside the image."""
-        m = torch.zeros(self.num_offsets, self.height, self.width, dtype=torch.bool,
-                        device=self.device)
+        m = torch.zeros(
+            self.num_offsets, self.height, self.width, dtype=torch.bool, device=self.device
+        )
         for k, (dy, dx) in enumerate(self.offsets):
             ys_i, xs_i, _, _ = _shift_slices(dy, dx, self.height, self.width)
             m[k, ys_i, xs_i] = True
@@ -152,8 +153,9 @@ class Stencil:
         j = (y + dy) * self.width + (x + dx)
         return k, i, j
 
-    def difference_matrix(self, weights: torch.Tensor | None = None,
-                          batch: int = 1) -> torch.Tensor:
+    def difference_matrix(
+        self, weights: torch.Tensor | None = None, batch: int = 1
+    ) -> torch.Tensor:
         """The (optionally weighted) difference operator as a sparse COO matrix.
 
         Args:
