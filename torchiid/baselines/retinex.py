@@ -35,8 +35,8 @@ import logging
 
 import torch
 
-from torchiid.core.check import check_image, check_shape
-from torchiid.core.exceptions import ParameterError, ShapeError
+from torchiid.core.check import as_mask, check_image
+from torchiid.core.exceptions import ParameterError
 from torchiid.solvers.pcg import pcg
 
 __all__ = ["color_retinex", "ColorRetinex"]
@@ -44,20 +44,6 @@ __all__ = ["color_retinex", "ColorRetinex"]
 logger = logging.getLogger(__name__)
 
 GROSSE_EPS = 3.0 / 257.0
-
-
-def _prepare_mask(mask: torch.Tensor | None, image: torch.Tensor) -> torch.Tensor:
-    b, _, h, w = image.shape
-    if mask is None:
-        return torch.ones(b, 1, h, w, dtype=torch.bool, device=image.device)
-    if mask.dim() == 2:
-        mask = mask[None, None]
-    elif mask.dim() == 3:
-        mask = mask[:, None]
-    check_shape(mask, ("B", 1, "H", "W"), "mask")
-    if mask.shape[-2:] != (h, w) or mask.shape[0] not in (1, b):
-        raise ShapeError(f"mask has shape {tuple(mask.shape)}, expected ({b}, 1, {h}, {w})")
-    return (mask.to(image.device) > 0).expand(b, 1, h, w)
 
 
 def _grad_y(x: torch.Tensor) -> torch.Tensor:
@@ -149,7 +135,7 @@ def color_retinex(
             "expected threshold_gray >= 0, threshold_color >= 0 and eps > 0, got "
             f"{threshold_gray}, {threshold_color}, {eps}"
         )
-    m = _prepare_mask(mask, image)
+    m = as_mask(mask, image)
     x = image.double()
     log_i = torch.log(x.clamp_min(eps))
     gray_i = x.mean(dim=1, keepdim=True).clamp_min(eps)

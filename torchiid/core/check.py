@@ -12,7 +12,7 @@ import torch
 
 from torchiid.core.exceptions import ImageError, ShapeError
 
-__all__ = ["check_image", "check_same_batch", "check_finite", "check_shape"]
+__all__ = ["as_mask", "check_image", "check_same_batch", "check_finite", "check_shape"]
 
 MIN_SIDE = 60
 
@@ -90,3 +90,21 @@ def check_same_batch(*tensors: torch.Tensor, names: Sequence[str] | None = None)
                 f"{n} has shape {tuple(t.shape)} but {names[0]} has shape {tuple(ref.shape)}; "
                 "batch size and (H, W) must match"
             )
+
+
+def as_mask(mask: torch.Tensor | None, like: torch.Tensor, name: str = "mask") -> torch.Tensor:
+    """A bool ``(B, 1, H, W)`` mask for ``like`` ``(B, C, H, W)``: nonzero is inside.
+
+    Accepts ``(H, W)``, ``(B, H, W)`` or ``(B or 1, 1, H, W)``; ``None`` means all inside.
+    """
+    b, _, h, w = like.shape
+    if mask is None:
+        return torch.ones(b, 1, h, w, dtype=torch.bool, device=like.device)
+    if mask.dim() == 2:
+        mask = mask[None, None]
+    elif mask.dim() == 3:
+        mask = mask[:, None]
+    check_shape(mask, ("B", 1, "H", "W"), name)
+    if mask.shape[-2:] != (h, w) or mask.shape[0] not in (1, b):
+        raise ShapeError(f"{name} has shape {tuple(mask.shape)}, expected ({b} or 1, 1, {h}, {w})")
+    return (mask.to(like.device) != 0).expand(b, 1, h, w)

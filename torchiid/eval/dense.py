@@ -8,9 +8,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from torchiid.core.check import check_shape
+from torchiid.core.check import as_mask, check_shape
 from torchiid.core.exceptions import ParameterError, ShapeError
-from torchiid.eval.lmse import _prepare_mask
 
 __all__ = ["scale_to_match", "si_mse", "ssim", "dssim"]
 
@@ -30,7 +29,7 @@ def scale_to_match(
         - gt, est: ``(B, C, H, W)``; mask: ``(B, 1, H, W)`` or broadcastable; output like est.
     """
     _check_pair(gt, est)
-    m = _prepare_mask(mask, gt).double()
+    m = as_mask(mask, gt).double()
     g, e = gt.double(), est.double()
     den = (m * e * e).sum(dim=(2, 3), keepdim=True)
     num = (m * g * e).sum(dim=(2, 3), keepdim=True)
@@ -52,7 +51,7 @@ def si_mse(gt: torch.Tensor, est: torch.Tensor, mask: torch.Tensor | None = None
         - gt, est: ``(B, C, H, W)``; mask: ``(B, 1, H, W)`` (bool or weights) or ``None``.
     """
     _check_pair(gt, est)
-    m = _prepare_mask(mask, gt).double()
+    m = as_mask(mask, gt).double()
     err = (m * (gt.double() - scale_to_match(gt, est, mask).double()) ** 2).sum(dim=(1, 2, 3))
     count = m.sum(dim=(1, 2, 3)) * gt.shape[1]
     return (err / count).to(gt.dtype)
@@ -110,7 +109,7 @@ def ssim(
     c1 = (0.01 * data_range) ** 2
     c2 = (0.03 * data_range) ** 2
     smap = ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
-    m = _prepare_mask(mask, gt).double()[..., radius : h - radius, radius : w - radius]
+    m = as_mask(mask, gt).double()[..., radius : h - radius, radius : w - radius]
     total = (smap * m).sum(dim=(1, 2, 3)) / (m.sum(dim=(1, 2, 3)) * c)
     return total.to(gt.dtype)
 

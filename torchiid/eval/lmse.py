@@ -25,24 +25,10 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from torchiid.core.check import check_shape
+from torchiid.core.check import as_mask, check_shape
 from torchiid.core.exceptions import ParameterError, ShapeError
 
 __all__ = ["local_mse", "mit_lmse"]
-
-
-def _prepare_mask(mask: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
-    b, _, h, w = like.shape
-    if mask is None:
-        return torch.ones(b, 1, h, w, dtype=like.dtype, device=like.device)
-    if mask.dim() == 2:
-        mask = mask[None, None]
-    elif mask.dim() == 3:
-        mask = mask[:, None]
-    check_shape(mask, ("B", 1, "H", "W"), "mask")
-    if mask.shape[-2:] != (h, w) or mask.shape[0] not in (1, b):
-        raise ShapeError(f"mask has shape {tuple(mask.shape)}, expected ({b} or 1, 1, {h}, {w})")
-    return mask.to(device=like.device, dtype=like.dtype).expand(b, 1, h, w)
 
 
 def local_mse(
@@ -82,7 +68,7 @@ def local_mse(
     h, w = gt.shape[-2:]
     if h < window or w < window:
         raise ShapeError(f"image is {h}x{w}, smaller than the {window}x{window} LMSE window")
-    m = _prepare_mask(mask, gt).double()
+    m = as_mask(mask, gt).double()
     g = gt.double()
     e = est.to(g.device).double()
     b, c = g.shape[:2]
