@@ -6,6 +6,7 @@ import pytest
 from skimage import data
 
 from torchiid.cli import main
+from torchiid.params import Parameters
 
 FAST = ["--iterations", "1", "--no-progress"]
 
@@ -52,8 +53,9 @@ def test_decompose_writes_viewable_layers_and_parameters(photos, tmp_path):
     img = load_image(photos / "cat.png").image.permute(1, 2, 0).numpy()
     assert s.shape == (72, 96)
     assert np.allclose(r * s[..., None], img, atol=1e-5)
-    params = json.loads((out / "cat-params.json").read_text())
-    assert params["method"] == "semantic" and params["parameters"]["iterations"] == 1
+    # the parameters file is the format --params reads back
+    params = Parameters.from_json(out / "cat-params.json")
+    assert params == Parameters.preset("default").replace(iterations=1)
     assert (out / "cat-iter1-sigma.png").exists() and (out / "cat-iter1-R.png").exists()
     assert not list(out.glob(".*"))  # no temporary files left behind
 
@@ -105,7 +107,7 @@ def test_retinex_method_and_mask(photos, tmp_path):
         )
         == 0
     )
-    assert json.loads((out / "cat-params.json").read_text())["method"] == "retinex"
+    assert json.loads((out / "cat-params.json").read_text())["method"] == "color_retinex"
     out2 = tmp_path / "out2"
     assert (
         main(

@@ -14,6 +14,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from torchiid.commands.decompose import add_parameter_options
 from torchiid.core.exceptions import TorchiidError
 
 __all__ = ["main", "build_parser"]
@@ -59,13 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="semantic: the paper's method (default); retinex: Grosse et al.'s "
         "colour Retinex baseline",
     )
-    d.add_argument("--preset", default="default", help="parameter preset: default or paper")
-    d.add_argument("--params", type=Path, help="JSON file of parameters (over the preset)")
-    d.add_argument("--variant", help="ablation variant v1..v7 or baseline1..baseline3")
-    d.add_argument("--iterations", type=int, help="alternations k (overrides the preset)")
-    d.add_argument(
-        "--max-side", type=int, help="working resolution: longer side in px (0 = full resolution)"
-    )
+    add_parameter_options(d)
     d.add_argument(
         "--mask", type=Path, help="mask image (nonzero = inside); applies to every input"
     )

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -17,8 +19,22 @@ from torchiid.params import Parameters
 
 log = logging.getLogger("torchiid")
 
+RETINEX_DEFAULTS = {"threshold_gray": 0.075, "threshold_color": 1.0}
 
-def _params_from_args(args: argparse.Namespace) -> Parameters:
+
+def add_parameter_options(p: argparse.ArgumentParser) -> None:
+    """The options that choose the method's parameters (shared by ``decompose`` and ``eval``)."""
+    p.add_argument("--preset", default="default", help="parameter preset: default or paper")
+    p.add_argument("--params", type=Path, help="JSON file of parameters (over the preset)")
+    p.add_argument("--variant", help="ablation variant v1..v7 or baseline1..baseline3")
+    p.add_argument("--iterations", type=int, help="alternations k (overrides the preset)")
+    p.add_argument(
+        "--max-side", type=int, help="working resolution: longer side in px (0 = full resolution)"
+    )
+
+
+def params_from_args(args: argparse.Namespace) -> Parameters:
+    """Parameters from --preset, --params, --variant, --iterations and --max-side."""
     params = Parameters.preset(args.preset)
     if args.params is not None:
         params = Parameters.from_json(args.params, base=params)
@@ -60,6 +76,7 @@ def _preview(image: torch.Tensor, refl: torch.Tensor, shading: torch.Tensor) -> 
 def _write_outputs(
     out: Path, stem: str, image: torch.Tensor, result, args, params, method: str
 ) -> None:
+    """Write every layer of one image atomically (see :func:`output_names`)."""
     refl = result.reflectance[0].cpu()
     shad = result.shading[0].cpu()
     save_image(out / f"{stem}-reflectance.png", refl, "srgb8")
@@ -77,22 +94,14 @@ def _write_outputs(
                 save_image(
                     out / f"{stem}-iter{k}-{name}.png", getattr(layers, name)[0].cpu(), "srgb8"
                 )
-    record = params.to_dict() if method == "semantic" else {}
-    import json
-    import os
-
-    text = (
-        json.dumps(
-            {"method": method, "input": str(args._current_input), "parameters": record},
-            indent=2,
-            sort_keys=True,
-        )
-        + "\n"
-    )
     target = out / f"{stem}-params.json"
-    tmp = target.with_name(f".{target.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, target)
+    if method == "semantic":
+        params.to_json(target)  # the same format --params reads back
+    else:
+        text = json.dumps({"method": "color_retinex", **RETINEX_DEFAULTS}, indent=2) + "\n"
+        tmp = target.with_name(f".{target.name}.tmp")
+        tmp.write_text(text)
+        os.replace(tmp, target)
 
 
 def run_decompose(args: argparse.Namespace) -> int:
@@ -102,7 +111,7 @@ def run_decompose(args: argparse.Namespace) -> int:
     from torchiid.cli import collect_inputs, resolve_device
     from torchiid.model import decompose
 
-    params = _params_from_args(args)
+    params = params_from_args(args)
     device = resolve_device(args.device)
     inputs = collect_inputs(args.inputs)
     stems: dict[str, Path] = {}
@@ -135,13 +144,12 @@ def run_decompose(args: argparse.Namespace) -> int:
                 if shared_mask is None or shared_mask.shape[-2:] != image.shape[-2:]:
                     shared_mask = load_mask(args.mask, shape=tuple(image.shape[-2:]))
                 mask = shared_mask if mask is None else (mask & shared_mask)
-            args._current_input = path
             batch = image[None].to(device)
             mbatch = mask[None].to(device) if mask is not None else None
             if args.method == "retinex":
                 from torchiid.baselines.retinex import color_retinex
 
-                refl, shad = color_retinex(batch, mask=mbatch)
+                refl, shad = color_retinex(batch, mask=mbatch, **RETINEX_DEFAULTS)
                 result = SimpleNamespace(reflectance=refl, shading=shad, iterations=())
             else:
                 it_bar = tqdm(
@@ -168,9 +176,11 @@ def run_decompose(args: argparse.Namespace) -> int:
                 finally:
                     it_bar.close()
             _write_outputs(out, stem, image, result, args, params, args.method)
-            tqdm.write(
-                f"{path} -> {out}/{stem}-*.png ({time.perf_counter() - t0:.1f} s)", file=sys.stderr
-            ) if show else log.info("%s done", path)
+            done = f"{path} -> {out}/{stem}-*.png ({time.perf_counter() - t0:.1f} s)"
+            if show:
+                tqdm.write(done, file=sys.stderr)
+            else:
+                log.info(done)
         except TorchiidError as exc:
             failures += 1
             msg = str(exc)

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from torchiid.commands.decompose import add_parameter_options, params_from_args
 from torchiid.core.exceptions import ParameterError, ShapeError, TorchiidError
 
 __all__ = ["add_eval_parser", "run_eval", "METRICS"]
@@ -106,13 +107,7 @@ def add_eval_parser(subparsers: Any) -> argparse.ArgumentParser:
         "r=i: reflectance = image, shading = 1; s=i: shading = gray image, "
         "reflectance = 1 (reference rows)",
     )
-    p.add_argument("--preset", default="default", help="parameter preset (semantic)")
-    p.add_argument("--params", type=Path, help="JSON file of parameters over the preset")
-    p.add_argument("--variant", help="ablation variant v1..v7 or baseline1..baseline3")
-    p.add_argument("--iterations", type=int, help="alternations k (overrides the preset)")
-    p.add_argument(
-        "--max-side", type=int, help="working resolution: longer side in px (0 = full resolution)"
-    )
+    add_parameter_options(p)
     p.add_argument(
         "--device",
         default="auto",
@@ -442,9 +437,7 @@ def run_eval(args: argparse.Namespace) -> int:
     method = "results" if scoring else args.method
     params = None
     if method == "semantic":
-        from torchiid.commands.decompose import _params_from_args
-
-        params = _params_from_args(args)
+        params = params_from_args(args)
     device = resolve_device(args.device)
     dataset = _open_dataset(args)
     ids = list(dataset.ids)[: args.limit]
