@@ -16,7 +16,11 @@ def test_paper_preset_has_the_papers_values():
 
 def test_default_preset_differs_from_paper_only_where_tuned():
     paper, default = Parameters.preset("paper").to_dict(), Parameters.preset("default").to_dict()
-    assert {k for k in paper if paper[k] != default[k]} == {"cg_max_iter"}
+    assert {k for k in paper if paper[k] != default[k]} == {
+        "cg_max_iter",
+        "bregman_iter",
+        "bregman_cg_iter",
+    }
     assert Parameters.preset("paper") == Parameters()
 
 

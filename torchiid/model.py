@@ -246,6 +246,8 @@ def decompose(
                 z0=r_prev,
                 tol=params.bregman_tol,
                 max_outer=params.bregman_iter,
+                cg_max_iter=params.bregman_cg_iter,
+                track_objective=False,
             )
             refl = rr.reflectance
         else:

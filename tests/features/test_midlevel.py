@@ -94,7 +94,11 @@ def test_pca_sign_convention_and_methods_agree(props, mid):
     torch.testing.assert_close(a, b, rtol=0, atol=1e-5)
     again = midlevel_features(props, dtype=torch.float64)
     torch.testing.assert_close(again.pca(3), a, rtol=0, atol=0)
-    v = mid.atom_g.T @ mid.pca_atoms(3, "exact")[0]  # proportional to the component vectors
+    # the pixel-weighted covariance times the components: C V = V diag(var), so the columns
+    # of (g - mu)^T diag(w) proj are the component vectors scaled by their (positive) variances
+    wn = (mid.atom_sizes / mid.atom_sizes.sum()).to(mid.atom_g.dtype).unsqueeze(1)
+    gc = mid.atom_g - (wn * mid.atom_g).sum(0)
+    v = gc.T @ (wn * mid.pca_atoms(3, "exact")[0])
     top = v.abs().argmax(0)
     assert bool((v[top, torch.arange(3)] > 0).all())
 

@@ -2,7 +2,6 @@ import numpy as np
 import pytest
 import torch
 from skimage import data, transform
-from skimage.segmentation import felzenszwalb
 
 from torchiid.core.exceptions import ImageError, ParameterError, ShapeError
 from torchiid.features.proposals import (
@@ -11,6 +10,7 @@ from torchiid.features.proposals import (
     linear_to_srgb,
     selective_search,
 )
+from torchiid.features.segmentation import graph_segmentation
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +62,7 @@ def test_hierarchy_per_strategy(astronaut, space, sim):
     masks = p.masks()
     assert bool(masks.flatten(1).all(1).any()), "whole-image region missing"
     if space == "rgb":  # initial regions are Felzenszwalb's, hierarchy has 2R - 1 nodes
-        seg = felzenszwalb(astronaut, scale=40, sigma=0.8, min_size=40)
+        seg = graph_segmentation(astronaut, scale=40, sigma=0.8, min_size=40)
         r = len(np.unique(seg))
         assert p.num_proposals == 2 * r - 1
         cols = _columns(p)

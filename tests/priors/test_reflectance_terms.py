@@ -8,6 +8,7 @@ from torchiid.priors.reflectance_terms import (
     _L1Term,
     data_term,
     lab_features,
+    merged_stencil_affinity,
     pair_affinity,
     stencil_affinity,
 )
@@ -142,6 +143,34 @@ def test_fused_bregman_step_matches_generic():
     torch.testing.assert_close(r1, r2)
     torch.testing.assert_close(l1, l2)
     assert b1.abs().max() <= 0.05 + 1e-12
+
+
+def test_merged_affinity_equals_weighted_sum_of_both_terms():
+    g = torch.Generator().manual_seed(7)
+    colour = torch.rand(2, 3, 9, 10, generator=g, dtype=D) * 0.2
+    semantic = torch.rand(2, 4, 9, 10, generator=g, dtype=D) * 0.1
+    mask = torch.rand(2, 1, 9, 10, generator=g) > 0.2
+    st = Stencil.square(9, 10, 5)
+    v_l = stencil_affinity(colour, st, 0.05, mask)
+    v_m = v_l * stencil_affinity(semantic, st, 0.07, mask)
+    ref = (20.0 * v_l + 5.0 * v_m) / 25.0
+    got = merged_stencil_affinity(colour, semantic, st, 0.05, 0.07, 20.0, 5.0, mask)
+    torch.testing.assert_close(got, ref)
+    assert (got <= v_l + 1e-12).all() and (got >= v_m - 1e-12).all()
+    with pytest.raises(ParameterError, match="gamma_l"):
+        merged_stencil_affinity(colour, semantic, st, 0.05, 0.07, 0.0, 0.0)
+
+
+def test_bregman_step_without_l1_gives_the_same_update():
+    term = _stencil_term()
+    g = torch.Generator().manual_seed(6)
+    z = torch.rand(2, 3, 5, 6, generator=g, dtype=D)
+    b0 = torch.randn(term.init_state(z).shape, generator=g, dtype=D) * 0.1 * term.stencil.valid
+    b1, r1, l1 = term.bregman_step(z, b0.clone(), 0.05, with_l1=False)
+    b2, r2, _ = term.bregman_step(z, b0.clone(), 0.05)
+    assert l1 is None
+    torch.testing.assert_close(b1, b2)
+    torch.testing.assert_close(r1, r2)
 
 
 def test_pair_affinity_and_data_term():

@@ -104,6 +104,16 @@ def test_objective_decreases_overall():
     assert bool((obj[10:].diff() <= 1e-9).all())
 
 
+def test_untracked_objective_gives_the_same_solution():
+    rho, term = _problem(b=2, dtype=D)
+    kw = dict(gamma_a=1.0, theta=2.0, max_outer=5, tol=0, cg_max_iter=7)
+    tracked = split_bregman(rho, [term], [0.05], **kw)
+    fast = split_bregman(rho, [term], [0.05], track_objective=False, **kw)
+    assert fast.objective is None and tracked.objective.shape == (6, 2)
+    torch.testing.assert_close(fast.z, tracked.z)
+    assert fast.outer_iterations.tolist() == tracked.outer_iterations.tolist()
+
+
 def test_batch_equals_one_by_one_and_per_image_stopping():
     rho, term = _problem(b=2)
     rho[1] = 0.5  # constant image: z = rho is optimal, stops after one iteration

@@ -31,7 +31,7 @@ __all__ = ["MidLevelBatch", "MidLevelFeatures", "midlevel_features", "midlevel_f
 logger = logging.getLogger(__name__)
 
 _EXACT_PCA_LIMIT = 512
-_POWER_ITERATIONS = 3
+_POWER_ITERATIONS = 5
 _CHUNK = 1 << 22  # elements per chunk of pair products
 
 

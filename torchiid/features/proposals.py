@@ -3,7 +3,8 @@
 The paper takes region masks and objectness scores from MCG. torchiid uses selective search
 (Uijlings et al. 2013, "Selective Search for Object Recognition", IJCV): for every *strategy*
 (a colour space, a Felzenszwalb scale ``k`` and a similarity combination), the image is
-over-segmented with :func:`skimage.segmentation.felzenszwalb` and adjacent regions are merged
+over-segmented with Felzenszwalb's method
+(:func:`~torchiid.features.segmentation.graph_segmentation`) and adjacent regions are merged
 greedily, most similar pair first, until one region is left. Every region of every hierarchy
 (the initial ones included) is a proposal. The similarity is the sum of the selected terms
 
@@ -44,11 +45,10 @@ import cv2
 import numpy as np
 import scipy.ndimage as ndi
 import torch
-from skimage import color
-from skimage.segmentation import felzenszwalb
 
 from torchiid.core.check import check_image
 from torchiid.core.exceptions import ImageError, ParameterError, ShapeError
+from torchiid.features.segmentation import graph_segmentation
 
 __all__ = ["COLOUR_SPACES", "Proposals", "Strategy", "selective_search", "linear_to_srgb"]
 
@@ -191,12 +191,18 @@ def _check_side(h: int, w: int) -> None:
 
 
 def _to_colour_space(srgb: np.ndarray, space: str) -> np.ndarray:
-    """``HxWx3`` sRGB in ``[0, 1]`` to the colour space, every channel scaled to ``[0, 1]``."""
+    """``HxWx3`` sRGB in ``[0, 1]`` to the colour space, every channel scaled to ``[0, 1]``.
+
+    OpenCV's float conversions (D65 CIELab from sRGB; HSV with hue in degrees).
+    """
     if space == "rgb":
         return srgb
+    x = np.ascontiguousarray(srgb, dtype=np.float32)
     if space == "hsv":
-        return color.rgb2hsv(srgb)
-    lab = color.rgb2lab(srgb)
+        hsv = cv2.cvtColor(x, cv2.COLOR_RGB2HSV)
+        hsv[..., 0] /= 360.0
+        return hsv.astype(np.float64)
+    lab = cv2.cvtColor(x, cv2.COLOR_RGB2Lab).astype(np.float64)
     return np.stack(
         [lab[..., 0] / 100.0, (lab[..., 1] + 128.0) / 255.0, (lab[..., 2] + 128.0) / 255.0], -1
     ).clip(0.0, 1.0)
@@ -482,8 +488,7 @@ def _search_one(
     segs = []
     for cs, k in seg_keys:
         ms = int(k) if min_size is None else int(min_size)
-        seg = felzenszwalb(converted[cs], scale=k, sigma=sigma, min_size=max(ms, 1))
-        seg = seg.astype(np.int64)
+        seg = graph_segmentation(converted[cs], scale=k, sigma=sigma, min_size=max(ms, 1))
         segs.append(_compact(seg.reshape(-1), int(seg.max()) + 1).reshape(h, w))
     atom_flat, rep = _atoms(segs)
     n_atoms = len(rep)

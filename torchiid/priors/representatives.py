@@ -78,7 +78,11 @@ def representative_pixels(
         return Representatives(empty, empty.bool(), empty)
     lab_u = lab[bidx, pix]
     key = bidx * (int(lab_u.max()) + 1) + lab_u
-    seg_keys, seg = torch.unique(key, return_inverse=True)  # sorted: by image, then label
+    # the used keys, sorted (by image, then label), and each pixel's rank among them: a
+    # counting pass instead of torch.unique's sort
+    present = torch.bincount(key) > 0
+    seg_keys = torch.nonzero(present).squeeze(1)
+    seg = (torch.cumsum(present, 0) - 1)[key]
     m = seg_keys.numel()
     f = features.reshape(b, d, n)[bidx, :, pix]  # (n_used, D)
     count = torch.bincount(seg, minlength=m).to(f.dtype)
@@ -133,7 +137,7 @@ def felzenszwalb_segments(
     sigma: float = 0.8,
     min_size: int = 100,
 ) -> torch.Tensor:
-    """Felzenszwalb–Huttenlocher superpixels (``skimage.segmentation.felzenszwalb``) per image.
+    """Felzenszwalb–Huttenlocher superpixels per image (``graph_segmentation``).
 
     Runs on the sRGB encoding of the image in ``[0, 1]`` (``linear=True`` converts a linear input
     with ``kornia.color.linear_rgb_to_rgb`` after clamping). Defaults give about 150–300 segments
@@ -149,17 +153,12 @@ def felzenszwalb_segments(
     Shape:
         ``(B, 3, H, W) -> (B, H, W)`` long labels from 0, on the image's device.
     """
-    from skimage.segmentation import felzenszwalb
+    from torchiid.features.segmentation import graph_segmentation
 
     check_image(image, "image")
     srgb = image.clamp(0.0, 1.0)
     if linear:
         srgb = kornia.color.linear_rgb_to_rgb(srgb)
-    arr = srgb.detach().to("cpu", torch.float64).permute(0, 2, 3, 1).numpy()
-    out = [
-        felzenszwalb(
-            np.ascontiguousarray(a), scale=scale, sigma=sigma, min_size=min_size, channel_axis=-1
-        )
-        for a in arr
-    ]
+    arr = srgb.detach().to("cpu", torch.float32).permute(0, 2, 3, 1).numpy()
+    out = [graph_segmentation(a, scale=scale, sigma=sigma, min_size=min_size) for a in arr]
     return torch.from_numpy(np.stack(out).astype(np.int64)).to(image.device)

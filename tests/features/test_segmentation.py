@@ -1,0 +1,49 @@
+import numpy as np
+import pytest
+from skimage import data, transform
+
+from torchiid.core.exceptions import ParameterError, ShapeError
+from torchiid.features.segmentation import graph_segmentation, segmentation_backend
+
+
+@pytest.fixture(scope="module")
+def coffee():
+    return transform.resize(data.coffee(), (96, 128), anti_aliasing=True)  # sRGB floats
+
+
+def test_backend_is_opencv_contrib():
+    # the package depends on opencv-contrib-python-headless; the fallback is for broken installs
+    assert segmentation_backend() == "opencv"
+
+
+@pytest.mark.parametrize("backend", ["opencv", "skimage"])
+def test_labels_are_compact_and_respect_min_size(coffee, backend):
+    labels = graph_segmentation(coffee, scale=100, sigma=0.8, min_size=30, backend=backend)
+    assert labels.shape == coffee.shape[:2] and labels.dtype == np.int64
+    counts = np.bincount(labels.reshape(-1))
+    assert labels.min() == 0 and (counts > 0).all()  # labels 0..n-1, none empty
+    assert counts.min() >= 30
+    # larger k gives fewer, larger segments
+    coarse = graph_segmentation(coffee, scale=800, sigma=0.8, min_size=30, backend=backend)
+    assert coarse.max() < labels.max()
+
+
+def test_backends_agree_on_segment_statistics(coffee):
+    a = graph_segmentation(coffee, scale=100, min_size=30, backend="opencv")
+    b = graph_segmentation(coffee, scale=100, min_size=30, backend="skimage")
+    na, nb = a.max() + 1, b.max() + 1
+    assert 0.7 < na / nb < 1.4  # same algorithm, different smoothing kernels and tie order
+    # most pixel pairs that one backend puts together the other does too (sampled pairs)
+    rng = np.random.default_rng(0)
+    i, j = rng.integers(0, a.size, (2, 20000))
+    same_a, same_b = a.reshape(-1)[i] == a.reshape(-1)[j], b.reshape(-1)[i] == b.reshape(-1)[j]
+    assert (same_a == same_b).mean() > 0.9
+
+
+def test_errors():
+    with pytest.raises(ShapeError, match="HxWxC"):
+        graph_segmentation(np.zeros((10, 10)), scale=100)
+    with pytest.raises(ParameterError, match="scale"):
+        graph_segmentation(np.zeros((10, 10, 3)), scale=0)
+    with pytest.raises(ParameterError, match="backend"):
+        graph_segmentation(np.zeros((10, 10, 3)), scale=10, backend="x")
