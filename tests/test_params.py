@@ -18,6 +18,7 @@ def test_default_preset_differs_from_paper_only_where_tuned():
     paper, default = Parameters.preset("paper").to_dict(), Parameters.preset("default").to_dict()
     assert {k for k in paper if paper[k] != default[k]} == {
         "cg_max_iter",
+        "warm_cg_max_iter",
         "bregman_iter",
         "bregman_cg_iter",
     }

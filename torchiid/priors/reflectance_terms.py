@@ -263,7 +263,7 @@ class StencilL1Term(_L1Term):
     @cached_property
     def _degree(self) -> torch.Tensor:
         """Weighted degree ``Σ_j v²_ij`` over both directions of every pair, ``(B, 1, H, W)``."""
-        return self.stencil.laplacian_diagonal(self._w2)
+        return self.stencil.laplacian_diagonal(self._w2, zero_invalid=False)
 
     def normal_matvec(self, z: torch.Tensor) -> torch.Tensor:
         """``Mᵀ diag(v²) M z = deg ⊙ z − Σ_k v²_k ⊙ (shift_k(z) + shift_−k(z))``.

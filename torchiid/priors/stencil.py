@@ -129,9 +129,13 @@ class Stencil:
         """``M^T diag(w) M x`` for pair weights ``(B, K, H, W)`` and ``x`` ``(B, C, H, W)``."""
         return self.adjoint(weights.unsqueeze(1) * self.apply(x))
 
-    def laplacian_diagonal(self, weights: torch.Tensor) -> torch.Tensor:
-        """Diagonal of ``M^T diag(w) M``: ``(B, K, H, W) -> (B, 1, H, W)`` (Jacobi)."""
-        w = weights * self.valid.to(weights.dtype)
+    def laplacian_diagonal(self, weights: torch.Tensor, zero_invalid: bool = True) -> torch.Tensor:
+        """Diagonal of ``M^T diag(w) M``: ``(B, K, H, W) -> (B, 1, H, W)`` (Jacobi).
+
+        ``zero_invalid=False`` skips masking the pairs that leave the image, for weights that
+        are 0 there already.
+        """
+        w = weights * self.valid.to(weights.dtype) if zero_invalid else weights
         out = w.sum(dim=1, keepdim=True)
         h, wd = self.height, self.width
         for k, (dy, dx) in enumerate(self.offsets):
