@@ -156,7 +156,7 @@ def decompose(
         >>> bool(torch.allclose(out.reflectance * out.shading, img, atol=1e-5))
         True
     """
-    from torchiid.stages.reflectance import solve_reflectance
+    from torchiid.stages.reflectance import ReflectanceCache, solve_reflectance
     from torchiid.stages.shading import ShadingSystemCache, solve_shading
 
     params = params if params is not None else Parameters.preset("default")
@@ -190,6 +190,7 @@ def decompose(
     s_prev = r_prev = None
     sigma = rho = refl = None
     shading_cache = ShadingSystemCache()  # S_c, S_m, S_l are built once per image
+    reflectance_cache = ReflectanceCache()  # and B's proposal-feature factor
     layers: list[IterationLayers] = []
     for k in range(1, params.iterations + 1):
         t0 = time.perf_counter()
@@ -250,6 +251,7 @@ def decompose(
                 max_outer=params.bregman_iter,
                 cg_max_iter=params.bregman_cg_iter,
                 track_objective=False,
+                cache=reflectance_cache,
             )
             refl = rr.reflectance
         else:

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from torchiid.core.exceptions import ParameterError
+from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.priors.reflectance_terms import (
     PairL1Term,
     StencilL1Term,
@@ -154,11 +154,15 @@ def test_merged_affinity_equals_weighted_sum_of_both_terms():
     v_l = stencil_affinity(colour, st, 0.05, mask)
     v_m = v_l * stencil_affinity(semantic, st, 0.07, mask)
     ref = (20.0 * v_l + 5.0 * v_m) / 25.0
-    got = merged_stencil_affinity(colour, semantic, st, 0.05, 0.07, 20.0, 5.0, mask)
+    e_g = stencil_affinity(semantic, st, 0.07, mask)
+    got = merged_stencil_affinity(colour, e_g, st, 0.05, 20.0, 5.0, mask)
     torch.testing.assert_close(got, ref)
     assert (got <= v_l + 1e-12).all() and (got >= v_m - 1e-12).all()
+    torch.testing.assert_close(merged_stencil_affinity(colour, e_g, st, 0.05, 1.0, 0.0, mask), v_l)
     with pytest.raises(ParameterError, match="gamma_l"):
-        merged_stencil_affinity(colour, semantic, st, 0.05, 0.07, 0.0, 0.0)
+        merged_stencil_affinity(colour, e_g, st, 0.05, 0.0, 0.0)
+    with pytest.raises(ShapeError, match="semantic_affinity"):
+        merged_stencil_affinity(colour, e_g[:, :3], st, 0.05, 1.0, 1.0)
 
 
 def test_bregman_step_without_l1_gives_the_same_update():

@@ -5,7 +5,7 @@ from torchiid.core.exceptions import ImageError, ParameterError, ShapeError
 from torchiid.priors.reflectance_terms import lab_features, stencil_affinity
 from torchiid.priors.representatives import global_pair_term, representative_pixels
 from torchiid.priors.stencil import Stencil
-from torchiid.stages.reflectance import shading_from_ratio, solve_reflectance
+from torchiid.stages.reflectance import ReflectanceCache, shading_from_ratio, solve_reflectance
 from torchiid.synthetic import mondrian
 
 
@@ -32,6 +32,22 @@ def test_mondrian_l1_solution_is_closer_to_truth_than_rho():
     torch.testing.assert_close(r.shading, shading_from_ratio(s.image, r.reflectance))
     assert int(r.num_representatives[0]) == int(torch.unique(s.labels).numel())
     assert float(r.solver.objective[-1, 0]) < float(r.solver.objective[0, 0])
+
+
+def test_cache_reuses_the_proposal_factor_and_changes_nothing():
+    s, rho, gpca = _scene(h=32, w=40)
+    kw = dict(gpca=gpca, max_outer=2, cg_max_iter=3, window=5)
+    cache = ReflectanceCache()
+    first = solve_reflectance(rho, s.image, cache=cache, **kw)
+    again = solve_reflectance(0.9 * rho, s.image, cache=cache, **kw)  # new rho, same g̊
+    assert cache.hits == 1
+    torch.testing.assert_close(
+        again.reflectance, solve_reflectance(0.9 * rho, s.image, **kw).reflectance
+    )
+    torch.testing.assert_close(first.reflectance, solve_reflectance(rho, s.image, **kw).reflectance)
+    gpca.mul_(2.0)  # modified in place: the factor is recomputed, not reused
+    solve_reflectance(rho, s.image, cache=cache, **kw)
+    assert cache.hits == 1
 
 
 def test_batch_equals_one_by_one():

@@ -31,7 +31,7 @@ from functools import cached_property
 import kornia
 import torch
 
-from torchiid.core.exceptions import ParameterError
+from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.priors.stencil import Stencil, _shift_slices
 
 __all__ = [
@@ -119,38 +119,43 @@ def stencil_affinity(
 
 def merged_stencil_affinity(
     colour: torch.Tensor,
-    semantic: torch.Tensor,
+    semantic_affinity: torch.Tensor,
     stencil: Stencil,
     t: float,
-    t_g: float,
     gamma_l: float,
     gamma_m: float,
     mask: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Weights ``v̂ = (γ_l v^l + γ_m v^m) / (γ_l + γ_m)`` of ``A`` and ``B`` merged (Eqs. 8–9).
 
-    ``v^l = exp(−‖Δr̄‖²/2t²)`` and ``v^m = v^l · exp(−‖Δg̊‖²/2t_g²)`` share their pairs, so
-    ``γ_l‖diag(v^l) M z‖₁ + γ_m‖diag(v^m) M z‖₁ = (γ_l + γ_m)‖diag(v̂) M z‖₁`` exactly. One pass
-    over the offsets gives the same numbers as two :func:`stencil_affinity` calls, in half the
-    time and without a second ``(B, K, H, W)`` tensor.
+    ``v^l = exp(−‖Δr̄‖²/2t²)`` and ``v^m = v^l · e^g`` with the proposal-feature factor
+    ``e^g = exp(−‖Δg̊‖²/2t_g²)`` share their pairs, so
+    ``γ_l‖diag(v^l) M z‖₁ + γ_m‖diag(v^m) M z‖₁ = (γ_l + γ_m)‖diag(v̂) M z‖₁`` exactly and
+    ``v̂ = v^l · (γ_l + γ_m e^g) / (γ_l + γ_m)``. ``e^g`` depends only on ``g̊``, which Stage 0
+    computes once, so callers pass it precomputed (``stencil_affinity(g̊, stencil, t_g, mask)``)
+    and reuse it across the alternations; one pass over the offsets then gives ``v̂`` without
+    a second ``(B, K, H, W)`` tensor.
 
     Shape:
-        colour ``(B, 3, H, W)``, semantic ``(B, d, H, W)``, mask ``(B, 1, H, W)`` ->
+        colour ``(B, 3, H, W)``, semantic_affinity ``(B, K, H, W)``, mask ``(B, 1, H, W)`` ->
         ``(B, K, H, W)``.
     """
     _check_t(t)
-    _check_t(t_g)
     if not gamma_l + gamma_m > 0:
         raise ParameterError(f"need gamma_l + gamma_m > 0, got {gamma_l} and {gamma_m}")
     b, _, h, w = colour.shape
+    if semantic_affinity.shape != (b, stencil.num_offsets, h, w):
+        raise ShapeError(
+            f"semantic_affinity has shape {tuple(semantic_affinity.shape)}, expected "
+            f"{(b, stencil.num_offsets, h, w)}"
+        )
     out = colour.new_zeros(b, stencil.num_offsets, h, w)
-    sc, sg = -1.0 / (2.0 * t * t), -1.0 / (2.0 * t_g * t_g)
+    sc = -1.0 / (2.0 * t * t)
     a_l, a_m = gamma_l / (gamma_l + gamma_m), gamma_m / (gamma_l + gamma_m)
     for k, (dy, dx) in enumerate(stencil.offsets):
         yi, xi, yj, xj = _shift_slices(dy, dx, h, w)
         dc = (colour[:, :, yi, xi] - colour[:, :, yj, xj]).square_().sum(dim=1)
-        dg = (semantic[:, :, yi, xi] - semantic[:, :, yj, xj]).square_().sum(dim=1)
-        v = dg.mul_(sg).exp_().mul_(a_m).add_(a_l).mul_(dc.mul_(sc).exp_())
+        v = torch.mul(semantic_affinity[:, k, yi, xi], a_m).add_(a_l).mul_(dc.mul_(sc).exp_())
         if mask is not None:
             v.mul_(mask[:, 0, yi, xi] & mask[:, 0, yj, xj])
         out[:, k, yi, xi] = v

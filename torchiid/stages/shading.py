@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as F
 
+from torchiid.core.cache import input_key
 from torchiid.core.check import check_finite, check_image, check_shape
 from torchiid.core.exceptions import ConvergenceWarning, ParameterError, ShapeError
 from torchiid.priors.lle import lle_term
@@ -115,17 +116,6 @@ class ShadingSystemCache:
 
     terms: dict[str, tuple[tuple, QuadraticTerm]] = field(default_factory=dict)
     hits: int = 0
-
-
-def _key(*items: object) -> tuple:
-    """Identity of the inputs of a term: tensors by storage, shape and version."""
-    out: list[object] = []
-    for it in items:
-        if isinstance(it, torch.Tensor):
-            out.append((it.data_ptr(), tuple(it.shape), it.dtype, it._version))
-        else:
-            out.append(it)
-    return tuple(out)
 
 
 def _coarse_inputs(
@@ -261,7 +251,7 @@ def build_shading_system(
                 mask=mask,
                 seed=seed,
             ),
-            _key(
+            input_key(
                 patch_centers,
                 patch_features,
                 h,
@@ -293,14 +283,14 @@ def build_shading_system(
             "S_m",
             lambda_m,
             lambda: midlevel_term(similarity.to(dt), stencil, t_m, mask),
-            _key(similarity, t_m, mask, dt),
+            input_key(similarity, t_m, mask, dt),
         )
     if lambda_l > 0:
         timed(
             "S_l",
             lambda_l,
             lambda: retinex_term(image, stencil, t_c, t_b, dark_eps, mask),
-            _key(given, t_c, t_b, dark_eps, mask),
+            input_key(given, t_c, t_b, dark_eps, mask),
         )
     if not terms:
         raise ParameterError("every shading term is switched off; enable at least one")
