@@ -2,6 +2,7 @@
 
 Usage: python tools/bench_decompose.py [--sizes 256 512 1024] [--repeats 3] [--device cpu]
        [--threads N] [--iterations 5] [--image chelsea] [--preset default] [--params file.json]
+       [--per-iteration]
 
 For every size (the long side; 4:3 photos made by resizing a ``skimage.data`` image) the
 decomposition runs ``--repeats`` times after one warm-up run, in a fresh subprocess per size
@@ -11,6 +12,8 @@ mean per-iteration shading and reflectance times, the first iteration's shading 
 the coarse-to-fine start), the total wall time, its CPU time (``time.process_time``, robust
 to other load on the machine) and the peak memory: CPU max RSS of the worker
 (``resource.ru_maxrss``), and on CUDA ``torch.cuda.max_memory_allocated`` as well.
+``--per-iteration`` adds one line per size with every alternation's shading and reflectance
+time.
 """
 
 from __future__ import annotations
@@ -95,6 +98,11 @@ def main() -> None:
     ap.add_argument("--image", default="chelsea")
     ap.add_argument("--params", default="", help="JSON parameter file over the preset")
     ap.add_argument("--preset", default="default", help="parameter preset (default, paper)")
+    ap.add_argument(
+        "--per-iteration",
+        action="store_true",
+        help="also print every alternation's shading / reflectance seconds",
+    )
     ap.add_argument("--size", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -152,6 +160,11 @@ def main() -> None:
         if "cuda_mb" in r:
             line += f" {r['cuda_mb']:8.0f}"
         print(line, flush=True)
+        if args.per_iteration:
+            its = "  ".join(
+                f"{i}: {r[f'shading {i}']:.2f}/{r[f'reflectance {i}']:.2f}" for i in range(1, k + 1)
+            )
+            print(f"{'':>9} per alternation, shading/reflectance s: {its}", flush=True)
     print(
         f"threads {r['threads'] if 'r' in locals() else '?'}; peak RSS of each worker "
         f"process (includes the model and libraries)"
