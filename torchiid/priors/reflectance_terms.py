@@ -228,16 +228,25 @@ class StencilL1Term(_L1Term):
             image are ignored (set to 0).
         zero_invalid: set those entries to 0 (a copy); ``False`` when they already are, as for
             :func:`stencil_affinity` and :func:`merged_stencil_affinity`, saves a pass.
+        state: optional storage ``(B, C, K, H, W)`` for the Bregman variable of a solve that
+            starts from the zero state (its contents are overwritten, never read); reusing one
+            buffer across solves avoids faulting in fresh memory every time.
     """
 
     def __init__(
-        self, stencil: Stencil, weights: torch.Tensor, *, zero_invalid: bool = True
+        self,
+        stencil: Stencil,
+        weights: torch.Tensor,
+        *,
+        zero_invalid: bool = True,
+        state: torch.Tensor | None = None,
     ) -> None:
         self.stencil = stencil
         if zero_invalid:
             weights = weights * stencil.valid.to(device=weights.device, dtype=weights.dtype)
         self.weights = weights
         self._w2 = self.weights.square()
+        self.state = state
 
     def init_state(self, z: torch.Tensor) -> torch.Tensor:
         """Zero Bregman variable ``(B, C, K, H, W)``."""
@@ -306,7 +315,10 @@ class StencilL1Term(_L1Term):
         fresh = b is None
         if fresh:
             bsz, c, h, w = z.shape
-            b = z.new_empty(bsz, c, self.stencil.num_offsets, h, w)
+            shape = (bsz, c, self.stencil.num_offsets, h, w)
+            st = self.state
+            ok = st is not None and st.shape == shape and st.dtype == z.dtype
+            b = st if ok and st.device == z.device else z.new_empty(shape)
         for k, (yi, xi, yj, xj) in self._loop():
             wk = self.weights[:, k : k + 1, yi, xi]
             u = torch.sub(z[:, :, yi, xi], z[:, :, yj, xj], out=scratch[:, :, yi, xi]).mul_(wk)

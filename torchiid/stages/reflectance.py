@@ -70,7 +70,8 @@ class ReflectanceCache:
     The proposal-feature factor ``exp(−‖Δg̊‖²/2t_g²)`` of ``B``'s weights (Eq. 9) depends only
     on Stage 0's ``g̊`` and the mask, not on the current ``ρ``, so the pipeline computes it once
     per image batch and reuses it; it is recomputed when its inputs (same tensors, unmodified)
-    or parameters differ.
+    or parameters differ. It also keeps the storage of the Bregman variable (``(B, 3, K, H, W)``,
+    the stage's largest tensor) so that later alternations write into memory already in use.
 
     Attributes:
         semantic: (key of the inputs, ``(B, K, H, W)`` factor) or ``None``.
@@ -79,6 +80,16 @@ class ReflectanceCache:
 
     semantic: tuple[tuple, torch.Tensor] | None = None
     hits: int = 0
+    _state: torch.Tensor | None = None
+
+    def state_buffer(self, like: torch.Tensor, num_offsets: int) -> torch.Tensor:
+        """Storage ``(B, C, K, H, W)`` for the Bregman variable, reused across calls."""
+        b, c, h, w = like.shape
+        shape = (b, c, num_offsets, h, w)
+        st = self._state
+        if st is None or st.shape != shape or st.dtype != like.dtype or st.device != like.device:
+            self._state = st = like.new_empty(shape)
+        return st
 
 
 @dataclass(frozen=True)
@@ -197,7 +208,7 @@ def solve_reflectance(
         track_objective: record Eq. 12's value after every Bregman iteration
             (``solver.objective``); off saves about a fifth of the solve.
         cache: reuse ``B``'s proposal-feature factor across calls on the same ``gpca``
-            (:class:`ReflectanceCache`).
+            (:class:`ReflectanceCache`) and its Bregman-state storage.
         eps: floor of ``Σ_c R_c`` in the shading ratio.
 
     Returns:
@@ -253,7 +264,8 @@ def solve_reflectance(
     t2 = time.perf_counter()
     if _on(gamma_l) and use_b and merge_stencil_terms:
         merged = merged_stencil_affinity(rbar, e_g, stencil, t, gamma_l, gamma_m, mask)
-        terms.append(StencilL1Term(stencil, merged, zero_invalid=False))
+        state = None if cache is None else cache.state_buffer(rho, stencil.num_offsets)
+        terms.append(StencilL1Term(stencil, merged, zero_invalid=False, state=state))
         gammas.append(gamma_l + gamma_m)
     elif _on(gamma_l) or use_b:
         v_l = stencil_affinity(rbar, stencil, t, mask)
