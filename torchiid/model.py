@@ -246,6 +246,7 @@ def decompose(
                 gamma_a=gam_a,
                 theta=params.theta,
                 t=params.t,
+                colour_weights=params.colour_weights,
                 z0=r_prev,
                 tol=params.bregman_tol,
                 max_outer=params.bregman_iter,

@@ -199,3 +199,18 @@ def test_errors():
             2,
             2,
         )
+
+
+def test_bi_colour_weights_match_bi_et_al_at_t_005():
+    # Bi et al.'s windowvariation.m: exp(-0.5 * ||(10 L/100, 120 a/220, 120 b/220)||^2)
+    from torchiid.priors.reflectance_terms import COLOUR_WEIGHTS
+
+    g = torch.Generator().manual_seed(3)
+    x = 0.1 + 0.8 * torch.rand(1, 3, 1, 2, generator=g, dtype=D)
+    w_l, scale = COLOUR_WEIGHTS["bi"]
+    f = lab_features(x, luminance_weight=w_l, lab_scale=scale)
+    lab = lab_features(x, luminance_weight=1.0, lab_scale=(1.0, 1.0, 1.0))
+    bi = torch.tensor([10 / 100, 120 / 220, 120 / 220], dtype=D).view(1, 3, 1, 1) * lab
+    ours = torch.exp(-(f[..., 0] - f[..., 1]).square().sum() / (2 * 0.05**2))
+    ref = torch.exp(-0.5 * (bi[..., 0] - bi[..., 1]).square().sum())
+    torch.testing.assert_close(ours, ref)

@@ -15,10 +15,19 @@ over the 3-channel linear reflectance ``z``. Every L1 term is a weighted pair-di
 Both expose ``matrix()``, the operator ``diag(v) M`` as a torch sparse COO matrix (block diagonal
 over the batch, acting on one channel), the canonical reference the fast paths are tested against.
 
-Colour features (Eq. 7): ``r̄ = (w_L · L/100, a/220, b/220)`` from CIELab of the linear
-reflectance (:func:`lab_features`). With ``w_L = 0.1`` luminance counts ten times less than
-chroma (Bi et al. 2015), and a chroma step of ``Δa ≈ 11`` (a clearly visible colour edge) gives
-``‖Δr̄‖ = 0.05 = t``, i.e. a weight ``exp(−1/2) ≈ 0.61``; ``Δa ≈ 33`` gives ``0.011``.
+Colour features (Eq. 7): ``r̄ = (w_L · L/s_L, a/s_a, b/s_b)`` from CIELab of the linear
+reflectance (:func:`lab_features`), in one of two scalings (:data:`COLOUR_WEIGHTS`):
+
+- ``"wide"``: ``(0.1·L/100, a/220, b/220)``. Luminance counts ten times less than chroma, and a
+  chroma step of ``Δa ≈ 11`` gives ``‖Δr̄‖ = 0.05 = t``, a weight ``exp(−1/2) ≈ 0.61``;
+  ``Δa ≈ 33`` gives ``0.011``.
+- ``"bi"``: ``(0.5·L/100, a/36.7, b/36.7)``, i.e. ``t·(μ·L/100, γ·a/220, γ·b/220)`` with Bi et al.'s
+  ``μ = 10``, ``γ = 120`` (their ``windowvariation.m`` weighs pairs by
+  ``exp(−½‖(μ·L/100, γ·a/220, γ·b/220)‖²)``): at the paper's ``t = 0.05`` the weights are exactly
+  Bi et al.'s, whose parameters the paper says it reuses. ``ΔL = 10`` or ``Δa ≈ 1.8`` gives a
+  weight 0.61, ``ΔL = 30`` or ``Δa ≈ 5.5`` gives 0.011: 5–6× narrower than ``"wide"``. Texture
+  and thin coloured prints survive the flattening; noise of a few percent per channel is no
+  longer flattened (see :class:`~torchiid.params.Parameters`, ``colour_weights``).
 
 Masks: a ``(B, 1, H, W)`` bool ``mask`` zeroes every pair touching a pixel outside it, so those
 pixels keep only the data term; the solver then returns ``ρ`` there.
@@ -35,6 +44,7 @@ from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.priors.stencil import Stencil, _shift_slices
 
 __all__ = [
+    "COLOUR_WEIGHTS",
     "lab_features",
     "stencil_affinity",
     "merged_stencil_affinity",
@@ -43,6 +53,13 @@ __all__ = [
     "PairL1Term",
     "data_term",
 ]
+
+
+#: ``(w_L, (s_L, s_a, s_b))`` of :func:`lab_features` for each colour-weight scaling.
+COLOUR_WEIGHTS: dict[str, tuple[float, tuple[float, float, float]]] = {
+    "wide": (0.1, (100.0, 220.0, 220.0)),
+    "bi": (0.05 * 10.0, (100.0, 220.0 / (0.05 * 120.0), 220.0 / (0.05 * 120.0))),
+}
 
 
 def lab_features(
