@@ -60,12 +60,12 @@ class Parameters:
         gamma_a: weight of the data term ``‖z − ρ‖²``.
         theta: Split-Bregman penalty θ.
         t: deviation of the reflectance weights ``v_ij`` (Eq. 7).
-        colour_weights: scaling of the colour features ``r̄`` of ``v_ij``: ``"wide"``
-            (``(0.1·L/100, a/220, b/220)``) or ``"bi"`` (Bi et al.'s exact weight function at
-            ``t = 0.05``, 5–6× narrower; see :mod:`torchiid.priors.reflectance_terms`). With
-            ``"bi"`` the full method beats v4 on the MIT objects (the mid-level term then
-            flattens within proposals without washing out texture), but Stage 2 no longer
-            flattens noise of ~5% per channel.
+        colour_weights: scaling of the colour features ``r̄`` of ``v_ij``: ``"bi"`` (default:
+            ``(0.5·L/100, a/36.7, b/36.7)``, at ``t = 0.05`` exactly the weight function of Bi
+            et al.'s code, whose parameters the paper reuses) or ``"wide"``
+            (``(0.1·L/100, a/220, b/220)``, an earlier reading with 5–6× wider weights under
+            which the local term washes out thin texture and v7 loses to v4 on MIT); see
+            :mod:`torchiid.priors.reflectance_terms`.
         bregman_iter: outer Split-Bregman iterations per stage.
         bregman_cg_iter: CG iterations of each Split-Bregman ``z`` step (an inexact solve; the
             Bregman updates absorb the error, Goldstein & Osher use one Gauss–Seidel sweep).
@@ -115,7 +115,7 @@ class Parameters:
     gamma_a: float = 1.0
     theta: float = 40.0
     t: float = 0.05
-    colour_weights: str = "wide"
+    colour_weights: str = "bi"
     bregman_iter: int = 4
     bregman_cg_iter: int = 5
     bregman_tol: float = 1e-3
@@ -152,7 +152,7 @@ class Parameters:
             "feature_backend": ("onnx", "torch"),
             "lle_features": ("cnn", "rgb"),
             "lle_neighbours": ("knn", "random"),
-            "colour_weights": ("wide", "bi"),
+            "colour_weights": ("bi", "wide"),
         }
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
@@ -287,8 +287,7 @@ _PAPER: dict[str, Any] = {}  # the dataclass defaults are the paper's values
 #: fine) is capped at 100 PCG iterations per level and the later, warm-started ones at 30; the
 #: Split-Bregman stage runs 2 outer iterations of 3 CG steps (an inexact, early-stopped L1 solve:
 #: more iterations flatten further and scored worse on MIT and on noisy synthetic Mondrians).
-#: Measured mean LMSE (README): 0.0236 with a 100-iteration cap everywhere and 4 x 5 Bregman
-#: steps, 0.0227 with 2 x 3 steps, 0.0227 with the warm cap of 30 as well.
+#: Measured mean LMSE in the README.
 PRESETS: dict[str, dict[str, Any]] = {
     "paper": _PAPER,
     "default": {

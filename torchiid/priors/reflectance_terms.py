@@ -21,13 +21,14 @@ reflectance (:func:`lab_features`), in one of two scalings (:data:`COLOUR_WEIGHT
 - ``"wide"``: ``(0.1·L/100, a/220, b/220)``. Luminance counts ten times less than chroma, and a
   chroma step of ``Δa ≈ 11`` gives ``‖Δr̄‖ = 0.05 = t``, a weight ``exp(−1/2) ≈ 0.61``;
   ``Δa ≈ 33`` gives ``0.011``.
-- ``"bi"``: ``(0.5·L/100, a/36.7, b/36.7)``, i.e. ``t·(μ·L/100, γ·a/220, γ·b/220)`` with Bi et al.'s
+- ``"bi"`` (the default of :class:`~torchiid.params.Parameters`): ``(0.5·L/100, a/36.7, b/36.7)``,
+  i.e. ``t·(μ·L/100, γ·a/220, γ·b/220)`` with Bi et al.'s
   ``μ = 10``, ``γ = 120`` (their ``windowvariation.m`` weighs pairs by
   ``exp(−½‖(μ·L/100, γ·a/220, γ·b/220)‖²)``): at the paper's ``t = 0.05`` the weights are exactly
   Bi et al.'s, whose parameters the paper says it reuses. ``ΔL = 10`` or ``Δa ≈ 1.8`` gives a
   weight 0.61, ``ΔL = 30`` or ``Δa ≈ 5.5`` gives 0.011: 5–6× narrower than ``"wide"``. Texture
-  and thin coloured prints survive the flattening; noise of a few percent per channel is no
-  longer flattened (see :class:`~torchiid.params.Parameters`, ``colour_weights``).
+  and thin coloured prints survive the flattening; noise of a few percent per channel is
+  flattened less than with ``"wide"``.
 
 Masks: a ``(B, 1, H, W)`` bool ``mask`` zeroes every pair touching a pixel outside it, so those
 pixels keep only the data term; the solver then returns ``ρ`` there.

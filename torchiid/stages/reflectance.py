@@ -35,9 +35,11 @@ Colour-weight width and the ablation (MIT-Berkeley, 10 objects). ``B``'s weights
 times a gate, on ``A``'s pairs, so ``B`` can only add flattening where ``A`` flattens; on
 ``g̊`` the gate (``t_g = t = 0.05``) is in effect a same-atom indicator (pairs inside one atom
 have ``Δg̊ = 0``, pairs across atoms ``‖Δg̊‖ ≈ 0.3``). With the ``"wide"`` weights ``A``
-alone already washes out thin coloured prints and ``B`` makes it worse (mean LMSE v7 0.0239,
-v4 0.0224, v4 with ``γ_l = 40`` 0.0234); with ``"bi"`` ``A`` keeps them and ``B`` helps
-(v7 0.0230, v4 0.0248, v4 with ``γ_l = 40`` 0.0235, v1 0.0406).
+alone already washes out thin coloured prints and ``B`` makes it worse (mean LMSE, 4 × 5
+Bregman steps: v7 0.0239, v4 0.0224, v4 with ``γ_l = 40`` 0.0234); with ``"bi"`` (Bi et al.'s
+weights, the default) ``A`` keeps them and ``B`` helps (v7 0.0230, v4 0.0248, v4 with
+``γ_l = 40`` 0.0235, v1 0.0406; with the ``default`` preset's 2 × 3 steps v7 0.0222, v4 0.0225,
+v1 0.0416).
 """
 
 from __future__ import annotations
@@ -177,7 +179,7 @@ def solve_reflectance(
     t_g: float | None = None,
     window: int = 11,
     luminance_weight: float | None = None,
-    colour_weights: str = "wide",
+    colour_weights: str = "bi",
     z0: torch.Tensor | None = None,
     tol: float = 1e-3,
     max_outer: int = 3,
@@ -212,7 +214,7 @@ def solve_reflectance(
         luminance_weight: weight of ``L`` in ``r̄`` (:func:`lab_features`); default that of
             ``colour_weights``.
         colour_weights: scaling of ``r̄``, a key of
-            :data:`~torchiid.priors.reflectance_terms.COLOUR_WEIGHTS`: ``"wide"`` or ``"bi"``
+            :data:`~torchiid.priors.reflectance_terms.COLOUR_WEIGHTS`: ``"bi"`` or ``"wide"``
             (Bi et al.'s exact weight function at ``t = 0.05``).
         z0: warm start (default ``ρ``), e.g. the previous alternation's ``R``.
         tol: relative-change stopping threshold of the outer iterations.
