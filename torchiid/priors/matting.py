@@ -160,7 +160,7 @@ class MattingQuadratic(QuadraticTerm):
             self._diag = diag.clamp_min(0).to(self.dtype)
         return self._diag
 
-    def as_stencil(self, band_rows: int = 32) -> StencilQuadratic:
+    def as_stencil(self, band_rows: int | None = None) -> StencilQuadratic:
         """The same Laplacian as a signed 5x5 pair stencil (12 offsets), for fast products.
 
         Since ``L 1 = 0``, ``L = sum_{i<j} (-L_ij) (e_i - e_j)(e_i - e_j)^T`` and ``L_ij`` is
@@ -170,8 +170,15 @@ class MattingQuadratic(QuadraticTerm):
         pixels (rectangle sums, float64). Some weights are negative; the sum stays PSD.
         One 5x5 stencil product costs a fraction of the box-filter product and merges with
         the 3x3 terms (:class:`~torchiid.priors.quadratic.SumQuadratic`).
+
+        Args:
+            band_rows: rows per band of the float64 computation (default: about 49k pixels a
+                band, 96 rows at 512 px width; measured 0.064 s against 0.098 s with 32 rows
+                at 512x384 on 2 threads). The result does not depend on it.
         """
         b, _, h, w = self.shape
+        if band_rows is None:
+            band_rows = max(8, -(-49152 // w))
         img, mu, inv, v = self._stats64
         sym = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
         dmu = (inv * mu.unsqueeze(1)).sum(2)  # (B, 3, h-2, w-2)

@@ -110,7 +110,7 @@ class StencilQuadratic(QuadraticTerm):
         self.device = weights.device
 
     def _directed(self) -> tuple[list, torch.Tensor, torch.Tensor]:
-        """Both directions of every pair: slices, weight per direction ``(B, 2K, H, W)``, degree.
+        """Both pair directions: ``(slices, weight view)`` each, weights ``(B, 2K, H, W)``, degree.
 
         Cached for the current ``weights`` tensor (recomputed when it is replaced, e.g. by
         :class:`SumQuadratic` merging terms).
@@ -127,7 +127,9 @@ class StencilQuadratic(QuadraticTerm):
             wf[:, k_ + k, yj, xj] = self.weights[:, k, yi, xi]
             slices.append((yi, xi, yj, xj))
         slices += [(yj, xj, yi, xi) for yi, xi, yj, xj in slices]
-        out = (slices, wf, wf.sum(dim=1, keepdim=True))
+        # the weight operand of every product, sliced once (views, no copies)
+        wviews = [wf[:, k : k + 1, yi, xi] for k, (yi, xi, _, _) in enumerate(slices)]
+        out = (list(zip(slices, wviews, strict=True)), wf, wf.sum(dim=1, keepdim=True))
         self.__dict__["_directed_cache"] = (self.weights, out)
         return out
 
@@ -138,10 +140,10 @@ class StencilQuadratic(QuadraticTerm):
         per-direction weights; no sparse matrix, no ``(B, K, H, W)`` temporaries.
         """
         self._check(x)
-        slices, wf, deg = self._directed()
+        ops, _, deg = self._directed()
         out = deg * x
-        for k, (yi, xi, yj, xj) in enumerate(slices):
-            out[:, :, yi, xi].addcmul_(x[:, :, yj, xj], wf[:, k : k + 1, yi, xi], value=-1)
+        for (yi, xi, yj, xj), wk in ops:
+            out[:, :, yi, xi].addcmul_(x[:, :, yj, xj], wk, value=-1)
         return out
 
     def diagonal(self) -> torch.Tensor:
