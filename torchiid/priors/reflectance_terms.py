@@ -65,8 +65,8 @@ COLOUR_WEIGHTS: dict[str, tuple[float, tuple[float, float, float]]] = {
 
 def lab_features(
     rgb: torch.Tensor,
-    luminance_weight: float = 0.1,
-    lab_scale: tuple[float, float, float] = (100.0, 220.0, 220.0),
+    luminance_weight: float = COLOUR_WEIGHTS["bi"][0],
+    lab_scale: tuple[float, float, float] = COLOUR_WEIGHTS["bi"][1],
     white_quantile: float = 0.99,
 ) -> torch.Tensor:
     """Channel-normalised CIELab with suppressed luminance, ``r̄`` of Eq. 7.
@@ -78,8 +78,10 @@ def lab_features(
 
     Args:
         rgb: linear RGB (reflectance or image), ``>= 0``.
-        luminance_weight: ``w_L``, the weight of lightness relative to chroma.
-        lab_scale: divisors ``(s_L, s_a, s_b)``.
+        luminance_weight: ``w_L``, the weight of lightness relative to chroma (default:
+            ``COLOUR_WEIGHTS["bi"]``, 0.5).
+        lab_scale: divisors ``(s_L, s_a, s_b)`` (default ``COLOUR_WEIGHTS["bi"]``,
+            ``(100, 36.7, 36.7)``).
         white_quantile: quantile of the per-pixel channel maximum mapped to 1.
 
     Shape:
