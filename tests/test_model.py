@@ -136,3 +136,40 @@ def test_progress_is_reported():
 def test_bad_input_gets_clear_errors(image, kwargs, error, message):
     with pytest.raises(error, match=message):
         decompose(image, FAST, **kwargs)
+
+
+def test_shading_caps_first_and_warm_solves(monkeypatch):
+    import torchiid.stages.shading as shading
+
+    caps = []
+    real = shading.solve_shading
+
+    def spy(*args, **kwargs):
+        if "cache" in kwargs:  # the pipeline's calls, not the coarse levels' recursion
+            caps.append((kwargs["max_iter"], kwargs["levels"]))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(shading, "solve_shading", spy)
+    img = mondrian(64, 64, seed=1).image
+    p = FAST.replace(iterations=3, cg_max_iter=40, warm_cg_max_iter=7)
+    decompose(img, p)
+    assert caps == [(40, 3), (7, 1), (7, 1)]
+    caps.clear()
+    decompose(img, p.replace(warm_cg_max_iter=0))  # 0: the same cap everywhere
+    assert caps == [(40, 3), (40, 1), (40, 1)]
+
+
+def test_colour_weights_option_changes_stage2():
+    img = mondrian(64, 64, seed=4).image
+    bi = decompose(img, FAST)
+    wide = decompose(img, FAST.replace(colour_weights="wide"))
+    assert FAST.colour_weights == "bi"
+    assert not torch.allclose(bi.reflectance, wide.reflectance, atol=1e-4)
+
+
+def test_runs_under_inference_mode_like_no_grad():
+    s = mondrian(64, 64, seed=2)
+    ref = decompose(s.image, FAST)
+    with torch.inference_mode():
+        out = decompose(s.image, FAST)
+    torch.testing.assert_close(out.reflectance, ref.reflectance)

@@ -54,6 +54,9 @@ def test_partial_json_keeps_base(tmp_path):
         ({"use_sc": 1}, "use_sc must be true or false"),
         ({"patch_stride": 90}, "leaves pixels uncovered"),
         ({"stage1": False, "stage2": False}, "at least one of stage1"),
+        ({"bregman_cg_iter": 0}, "bregman_cg_iter must be > 0"),
+        ({"warm_cg_max_iter": -1}, "warm_cg_max_iter must be >= 0"),
+        ({"colour_weights": "narrow"}, "colour_weights must be one of bi, wide"),
     ],
 )
 def test_invalid_values_are_named(changes, message):

@@ -218,9 +218,11 @@ def decompose(
                 seed=params.seed,
                 x0=s_prev,
                 tol=params.cg_tol,
-                max_iter=params.warm_cg_max_iter or params.cg_max_iter
-                if s_prev is not None
-                else params.cg_max_iter,
+                max_iter=(
+                    (params.warm_cg_max_iter or params.cg_max_iter)
+                    if s_prev is not None
+                    else params.cg_max_iter
+                ),
                 warn=False,
                 levels=1 if s_prev is not None else 3,
                 cache=shading_cache,

@@ -12,8 +12,26 @@ def coffee():
 
 
 def test_backend_is_opencv_contrib():
-    # the package depends on opencv-contrib-python-headless; the fallback is for broken installs
+    """The package depends on opencv-contrib-python-headless, so this fails by design on an
+    environment where plain opencv-python shadows it (the fallback is for such installs)."""
     assert segmentation_backend() == "opencv"
+
+
+def test_falls_back_to_skimage_with_one_warning(monkeypatch, caplog):
+    import cv2
+
+    monkeypatch.delattr(cv2, "ximgproc")
+    segmentation_backend.cache_clear()
+    try:
+        with caplog.at_level("WARNING", logger="torchiid.features.segmentation"):
+            assert segmentation_backend() == "skimage"
+            assert segmentation_backend() == "skimage"
+            labels = graph_segmentation(np.zeros((20, 30, 3)), scale=100, min_size=50)
+        assert labels.shape == (20, 30)
+        warnings = [r for r in caplog.records if "opencv-contrib" in r.getMessage()]
+        assert len(warnings) == 1
+    finally:
+        segmentation_backend.cache_clear()
 
 
 @pytest.mark.parametrize("backend", ["opencv", "skimage"])

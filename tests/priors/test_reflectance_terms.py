@@ -206,11 +206,17 @@ def test_bi_colour_weights_match_bi_et_al_at_t_005():
     from torchiid.priors.reflectance_terms import COLOUR_WEIGHTS
 
     g = torch.Generator().manual_seed(3)
-    x = 0.1 + 0.8 * torch.rand(1, 3, 1, 2, generator=g, dtype=D)
+    base = 0.1 + 0.8 * torch.rand(1, 3, 1, 1, generator=g, dtype=D)
+    # a far pair (weight ~0) and a near pair (weight in (0.05, 0.95)): compare the exponents
+    x = torch.cat([base, 0.1 + 0.8 * torch.rand(1, 3, 1, 1, generator=g, dtype=D)], dim=3)
+    x = torch.cat([x, base * torch.tensor([1.03, 0.97, 1.0], dtype=D).view(1, 3, 1, 1)], dim=3)
     w_l, scale = COLOUR_WEIGHTS["bi"]
     f = lab_features(x, luminance_weight=w_l, lab_scale=scale)
     lab = lab_features(x, luminance_weight=1.0, lab_scale=(1.0, 1.0, 1.0))
     bi = torch.tensor([10 / 100, 120 / 220, 120 / 220], dtype=D).view(1, 3, 1, 1) * lab
-    ours = torch.exp(-(f[..., 0] - f[..., 1]).square().sum() / (2 * 0.05**2))
-    ref = torch.exp(-0.5 * (bi[..., 0] - bi[..., 1]).square().sum())
-    torch.testing.assert_close(ours, ref)
+    for j in (1, 2):
+        ours = (f[..., 0] - f[..., j]).square().sum() / (2 * 0.05**2)
+        ref = 0.5 * (bi[..., 0] - bi[..., j]).square().sum()
+        torch.testing.assert_close(ours, ref, rtol=1e-12, atol=0)
+    near = torch.exp(-ref)
+    assert 0.05 < float(near) < 0.95  # the near pair's weight is informative

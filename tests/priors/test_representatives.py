@@ -44,6 +44,15 @@ def test_one_representative_per_segment_closest_to_mean():
     assert reps.counts.tolist() == [int(torch.unique(x).numel()) for x in lab]
 
 
+def test_sparse_huge_label_ids_give_the_same_representatives():
+    g = torch.Generator().manual_seed(4)
+    f = torch.rand(2, 3, 9, 11, generator=g, dtype=D)
+    lab = _labels()
+    dense = representative_pixels(f, lab)
+    sparse = representative_pixels(f, lab * 2**40 + 7)  # same segments, ids up to ~2^43
+    assert torch.equal(dense.index, sparse.index) and torch.equal(dense.valid, sparse.valid)
+
+
 def test_mask_and_negative_labels_are_ignored():
     g = torch.Generator().manual_seed(2)
     f = torch.rand(2, 3, 9, 11, generator=g, dtype=D)

@@ -118,6 +118,8 @@ def test_errors():
         solve_reflectance(rho, s.image, gpca=gpca[..., :8])
     with pytest.raises(ShapeError, match="expected a bool mask"):
         solve_reflectance(rho, s.image, mask=torch.ones(1, 1, 16, 16))
+    with pytest.raises(ParameterError, match="colour_weights must be one of bi, wide"):
+        solve_reflectance(rho, s.image, colour_weights="narrow")
     with pytest.raises(ShapeError, match=r"expected segments of shape \(1, 16, 16\)"):
         solve_reflectance(rho, s.image, segments=s.labels[:, :4])
     with pytest.raises(ParameterError, match="gammas must be >= 0"):

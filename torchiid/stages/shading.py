@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as F
 
-from torchiid.core.cache import input_key
+from torchiid.core.cache import InputKey, input_key
 from torchiid.core.check import check_finite, check_image, check_shape
 from torchiid.core.exceptions import ConvergenceWarning, ParameterError, ShapeError
 from torchiid.priors.lle import lle_term
@@ -114,7 +114,7 @@ class ShadingSystemCache:
         hits: how many builds were skipped.
     """
 
-    terms: dict[str, tuple[tuple, QuadraticTerm]] = field(default_factory=dict)
+    terms: dict[str, tuple[InputKey, QuadraticTerm]] = field(default_factory=dict)
     hits: int = 0
 
 
