@@ -348,9 +348,9 @@ class StencilL1Term(_L1Term):
             if not fresh:
                 u += bk
             torch.clamp(u, -lam, lam, out=bk)  # the new b, written straight into the state
-            e = u.sub_(bk, alpha=2.0).mul_(wk)
-            rhs[:, :, yi, xi] += e
-            rhs[:, :, yj, xj] -= e
+            e = u.sub_(bk, alpha=2.0)  # d - b; (W M)^T scatters w * (d - b) to i and j
+            rhs[:, :, yi, xi].addcmul_(e, wk)
+            rhs[:, :, yj, xj].addcmul_(e, wk, value=-1)
         return b, rhs, l1
 
     def matrix(self) -> torch.Tensor:

@@ -8,6 +8,8 @@ every pair of representatives of an image, ``|Q|(|Q|−1)/2`` pairs weighted by 
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import kornia
@@ -18,7 +20,13 @@ from torchiid.core.check import check_image, check_shape
 from torchiid.core.exceptions import ShapeError
 from torchiid.priors.reflectance_terms import PairL1Term, pair_affinity
 
-__all__ = ["Representatives", "representative_pixels", "felzenszwalb_segments", "global_pair_term"]
+__all__ = [
+    "Representatives",
+    "representative_pixels",
+    "felzenszwalb_segments",
+    "start_felzenszwalb_segments",
+    "global_pair_term",
+]
 
 
 @dataclass(frozen=True)
@@ -156,6 +164,26 @@ def felzenszwalb_segments(
     Shape:
         ``(B, 3, H, W) -> (B, H, W)`` long labels from 0, on the image's device.
     """
+    return start_felzenszwalb_segments(
+        image, linear=linear, scale=scale, sigma=sigma, min_size=min_size
+    )()
+
+
+def start_felzenszwalb_segments(
+    image: torch.Tensor,
+    *,
+    linear: bool = True,
+    scale: float = 200.0,
+    sigma: float = 0.8,
+    min_size: int = 100,
+    executor: Executor | None = None,
+) -> Callable[[], torch.Tensor]:
+    """:func:`felzenszwalb_segments` that can run in the background.
+
+    The torch part (sRGB encoding) runs now, in the calling thread; the segmentation itself
+    (OpenCV's C++, which releases the GIL) is submitted to ``executor`` when given, so it
+    overlaps whatever the caller does next. Call the returned function for the labels.
+    """
     from torchiid.features.segmentation import graph_segmentation
 
     check_image(image, "image")
@@ -163,5 +191,15 @@ def felzenszwalb_segments(
     if linear:
         srgb = kornia.color.linear_rgb_to_rgb(srgb)
     arr = srgb.detach().to("cpu", torch.float32).permute(0, 2, 3, 1).numpy()
-    out = [graph_segmentation(a, scale=scale, sigma=sigma, min_size=min_size) for a in arr]
-    return torch.from_numpy(np.stack(out).astype(np.int64)).to(image.device)
+    device = image.device
+
+    def run() -> list[np.ndarray]:
+        return [graph_segmentation(a, scale=scale, sigma=sigma, min_size=min_size) for a in arr]
+
+    future = executor.submit(run) if executor is not None else None
+
+    def result() -> torch.Tensor:
+        out = future.result() if future is not None else run()
+        return torch.from_numpy(np.stack(out).astype(np.int64)).to(device)
+
+    return result
