@@ -96,23 +96,23 @@ def semantic_features(image: torch.Tensor, params: Parameters) -> SemanticFeatur
         pool = ThreadPoolExecutor(max_workers=1) if need_g else None
         seg_result = start_felzenszwalb_segments(image, scale=params.segment_scale, executor=pool)
         times["segments"] = time.perf_counter() - t0
-    if need_g:
-        t0 = time.perf_counter()
-        props = selective_search(image.detach().cpu(), seed=params.seed)
-        times["proposals"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        mid = midlevel_features_batch(props, like=image)
-        if params.stage1 and params.use_sm and params.lambda_m > 0:
-            sim = mid.similarity(shading_stencil(h, w, device=image.device))
-        if params.stage2 and params.use_rm and params.gamma_m > 0:
-            gpca = mid.pca(params.proposal_pca_dim)
-        times["mid-level g"] = time.perf_counter() - t0
-    if seg_result is not None:
-        t0 = time.perf_counter()
-        try:
+    try:
+        if need_g:
+            t0 = time.perf_counter()
+            props = selective_search(image.detach().cpu(), seed=params.seed)
+            times["proposals"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            mid = midlevel_features_batch(props, like=image)
+            if params.stage1 and params.use_sm and params.lambda_m > 0:
+                sim = mid.similarity(shading_stencil(h, w, device=image.device))
+            if params.stage2 and params.use_rm and params.gamma_m > 0:
+                gpca = mid.pca(params.proposal_pca_dim)
+            times["mid-level g"] = time.perf_counter() - t0
+        if seg_result is not None:
+            t0 = time.perf_counter()
             segs = seg_result()
-        finally:
-            if pool is not None:
-                pool.shutdown()
-        times["segments"] += time.perf_counter() - t0
+            times["segments"] += time.perf_counter() - t0
+    finally:  # also when the proposals fail: no thread is left behind
+        if pool is not None:
+            pool.shutdown()
     return SemanticFeatures(centers, feats, sim, gpca, segs, mid, times)
