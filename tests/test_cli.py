@@ -30,7 +30,6 @@ def test_decompose_writes_viewable_layers_and_parameters(photos, tmp_path):
                 str(photos / "cat.png"),
                 "-o",
                 str(out),
-                "--save-linear",
                 "--save-npy",
                 "--save-iterations",
                 *FAST,
@@ -44,7 +43,7 @@ def test_decompose_writes_viewable_layers_and_parameters(photos, tmp_path):
     assert refl.shape == (72, 96, 3) and refl.dtype == np.uint8
     assert shad.shape[:2] == (72, 96) and prev.shape == (72, 3 * 96 + 8, 3)
     lin = cv2.imread(str(out / "cat-reflectance-linear16.png"), cv2.IMREAD_UNCHANGED)
-    assert lin.dtype == np.uint16
+    assert lin.dtype == np.uint16 and lin.shape == (72, 96, 3)
     r = np.load(out / "cat-reflectance.npy")
     s = np.load(out / "cat-shading.npy")
     # the linear layers multiply back to the linear input
@@ -174,3 +173,71 @@ def test_cuda_request_without_cuda_is_a_clear_error(photos, tmp_path, capsys):
         == 2
     )
     assert "no CUDA device is available" in capsys.readouterr().err
+
+
+def _srgb_decode(a):
+    from torchiid.io import srgb_to_linear
+    import torch
+
+    x = torch.from_numpy(a.astype(np.float32) / 255)
+    return srgb_to_linear(x).numpy()
+
+
+def test_output_files_keep_the_convention_users_rely_on(tmp_path):
+    """Exact files multiply back to the image; the viewable ones do up to shading_white."""
+    import torch
+
+    from torchiid.io import load_image, read_exr
+
+    src = tmp_path / "coffee.png"
+    cv2.imwrite(str(src), cv2.resize(data.coffee(), (180, 120), interpolation=cv2.INTER_AREA)[..., ::-1])
+    out = tmp_path / "out"
+    argv = ["decompose", str(src), "-o", str(out), "--save-confidence", "--iterations", "2"]
+    assert main([*argv, "--no-progress"]) == 0
+    img = load_image(src).image.permute(1, 2, 0).numpy()
+    info = json.loads((out / "coffee-info.json").read_text())
+    white = info["shading_white"]
+    assert info["size"] == [180, 120] and 0 <= info["albedo_excess"] <= 0.001 + 1 / (180 * 120)
+    assert set(info["files"]) >= {"coffee-shading.exr", "coffee-reflectance-linear16.png"}
+    # exact pair: 16-bit linear reflectance (not clipped) and float OpenEXR shading
+    r16 = cv2.imread(str(out / "coffee-reflectance-linear16.png"), cv2.IMREAD_UNCHANGED)
+    r = r16[..., ::-1].astype(np.float64) / 65535
+    s, meta = read_exr(out / "coffee-shading.exr")
+    assert s.dtype == np.float32 and s.shape == (120, 180)
+    assert float(meta["shading_white"]) == pytest.approx(white)
+    assert (r16 == 65535).mean() <= 0.001 * 3  # only the quantile's pixels reach 1
+    # 16-bit R: relative error at most 1 / (2 * 65535 * R) per channel, plus the gray fit
+    rel = np.abs(r * s[..., None] - img) / np.maximum(img, 1e-6)
+    assert rel[r > 0.02].max() < 1e-3 and np.median(rel[r > 0.02]) < 1e-4
+    assert s.max() > 0 and np.isfinite(s).all()
+    # viewable pair: R8 * S8 * shading_white = I (median relative error < 3%, bright pixels)
+    r8 = cv2.imread(str(out / "coffee-reflectance.png"), cv2.IMREAD_UNCHANGED)[..., ::-1]
+    s8 = cv2.imread(str(out / "coffee-shading.png"), cv2.IMREAD_UNCHANGED)
+    recon = _srgb_decode(r8) * _srgb_decode(s8)[..., None] * white
+    lit = img > 0.05 * img.max()
+    assert np.median(np.abs(recon - img)[lit] / img[lit]) < 0.03
+    conf = cv2.imread(str(out / "coffee-confidence.png"), cv2.IMREAD_UNCHANGED)
+    assert conf.dtype == np.uint8 and conf.shape == (120, 180)
+    prev = cv2.imread(str(out / "coffee-preview.png"), cv2.IMREAD_UNCHANGED)
+    assert prev.shape == (120, 3 * 180 + 8, 3)
+    # eval --results scores the exact files when present
+    from torchiid.commands.eval import _load_layer
+
+    refl = _load_layer(out, "coffee", "reflectance")
+    assert torch.allclose(refl[0].permute(1, 2, 0), torch.from_numpy(r).float(), atol=1e-6)
+    shad = _load_layer(out, "coffee", "shading")
+    assert torch.allclose(shad[0, 0], torch.from_numpy(s), rtol=1e-6)
+
+
+def test_large_photos_get_a_downscaled_preview_and_full_size_layers(tmp_path):
+    src = tmp_path / "wide.jpg"
+    big = cv2.resize(data.coffee(), (1500, 1000), interpolation=cv2.INTER_CUBIC)
+    cv2.imwrite(str(src), big[..., ::-1])
+    out = tmp_path / "out"
+    assert main(["decompose", str(src), "-o", str(out), "--iterations", "1", "--no-progress"]) == 0
+    info = json.loads((out / "wide-info.json").read_text())
+    assert info["working_size"] == [512, 341] and info["size"] == [1500, 1000]
+    refl = cv2.imread(str(out / "wide-reflectance.png"), cv2.IMREAD_UNCHANGED)
+    assert refl.shape == (1000, 1500, 3)
+    prev = cv2.imread(str(out / "wide-preview.png"), cv2.IMREAD_UNCHANGED)
+    assert prev.shape == (683, 3 * 1024 + 8, 3)

@@ -65,9 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--mask", type=Path, help="mask image (nonzero = inside); applies to every input"
     )
     d.add_argument(
-        "--save-linear",
+        "--save-confidence",
         action="store_true",
-        help="also write 16-bit linear PNGs of reflectance and shading",
+        help="also write <stem>-confidence.png (255: trusted colour, 0: dark or clipped pixel)",
     )
     d.add_argument(
         "--save-npy",

@@ -7,13 +7,19 @@ twin. Both take **linear** RGB ``(B, 3, H, W)`` tensors on any device and return
 :class:`Decomposition` whose layers satisfy ``image == reflectance * shading`` exactly (up to
 floating-point rounding) inside the mask.
 
-Scale: the product ``R · S`` is ambiguous up to a factor. The returned shading is gray and
-scaled so that its 99th percentile inside the mask is 1 (bright lit surfaces have shading 1 and
-the reflectance there equals the image); the reflectance is then ``I / S``.
+Scale: the product ``R · S`` is ambiguous up to a factor. The reflectance is returned as an
+albedo in ``[0, 1]``: its ``albedo_quantile`` (0.999) quantile of the per-pixel maximum channel
+is 1, and the few pixels above have their excess moved into the shading, which is gray, carries
+the rest and may exceed 1 (see :func:`full_resolution_layers`).
+
+Resolution: the method runs at a working resolution (``Parameters.max_side``, default 512 px
+on the longer side); the shading is brought back to the input's resolution edge-aware and
+``R = I / S`` there, band by band, so a 12-megapixel photo costs a few full-resolution layers.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -25,9 +31,17 @@ from torchiid.core.check import check_image, check_shape
 from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.features.semantic import SemanticFeatures, semantic_features
 from torchiid.params import Parameters
-from torchiid.resample import downsample, guided_upsample, working_size
+from torchiid.priors.shading_terms import pixel_confidence
+from torchiid.resample import GuidedUpsampler, downsample, row_bands, working_size
 
-__all__ = ["Decomposition", "IterationLayers", "decompose", "IntrinsicDecomposer"]
+__all__ = [
+    "Decomposition",
+    "FullLayers",
+    "IterationLayers",
+    "decompose",
+    "full_resolution_layers",
+    "IntrinsicDecomposer",
+]
 
 _SHADING_FLOOR = 1e-4
 
@@ -35,6 +49,9 @@ _SHADING_FLOOR = 1e-4
 @dataclass(frozen=True)
 class IterationLayers:
     """The layers of one alternation (paper Fig. 5), linear, at the working resolution.
+
+    Each pair is in the output convention (albedo in ``[0, 1]``, see
+    :func:`full_resolution_layers`).
 
     Attributes:
         sigma: ``(B, 1, h, w)`` Stage 1 shading ``σ``.
@@ -54,43 +71,68 @@ class Decomposition:
     """Result of :func:`decompose`; every layer is **linear** RGB / gray.
 
     Attributes:
-        reflectance: ``(B, 3, H, W)`` final reflectance ``R`` (0 outside the mask).
-        shading: ``(B, 1, H, W)`` final gray shading ``S`` (0 outside the mask);
+        reflectance: ``(B, 3, H, W)`` final reflectance ``R``, an albedo in ``[0, 1]``
+            (0 outside the mask), at the input's resolution.
+        shading: ``(B, 1, H, W)`` final gray shading ``S`` (0 outside the mask), may exceed 1;
             ``reflectance * shading == image`` inside the mask.
-        sigma: ``(B, 1, H, W)`` last Stage 1 shading ``σ`` (same normalisation as ``shading``).
-        rho: ``(B, 3, H, W)`` last Stage 1 reflectance ``ρ = I / σ``.
+        sigma: ``(B, 1, H, W)`` last Stage 1 shading ``σ`` (same convention as ``shading``),
+            or ``None`` when ``decompose(..., return_stage1=False)``.
+        rho: ``(B, 3, H, W)`` last Stage 1 reflectance ``ρ = I / σ`` in ``[0, 1]``, or
+            ``None``.
         iterations: every alternation's layers if asked for, else an empty tuple.
         params: the parameters used.
         times: seconds per step (``"patch features"``, ``"proposals"``, ...,
             ``"shading k"``, ``"reflectance k"``, ``"total"``).
         mask: ``(B, 1, H, W)`` bool mask used, or ``None``.
+        shading_white: ``(B,)`` the shading's ``params.view_quantile`` (0.99) quantile inside
+            the mask: dividing ``shading`` by it gives a displayable image (the CLI's
+            ``-shading.png``), and ``(R · shading_white, S / shading_white)`` is the other
+            common convention (bright lit surfaces have shading 1).
+        albedo_excess: ``(B,)`` fraction of the pixels inside the mask whose reflectance
+            exceeded 1 and had the excess moved into the shading (at most
+            ``1 - albedo_quantile`` by construction).
+        working_size: ``(h, w)`` the resolution the method ran at.
     """
 
     reflectance: torch.Tensor
     shading: torch.Tensor
-    sigma: torch.Tensor
-    rho: torch.Tensor
+    sigma: torch.Tensor | None
+    rho: torch.Tensor | None
     iterations: tuple[IterationLayers, ...]
     params: Parameters
     times: dict[str, float] = field(default_factory=dict)
     mask: torch.Tensor | None = None
-
-
-def _percentile_scale(s: torch.Tensor, mask: torch.Tensor | None, q: float = 0.99) -> torch.Tensor:
-    """Per-image ``q``-quantile of ``s`` inside the mask, ``(B, 1, 1, 1)``."""
-    out = []
-    for i in range(s.shape[0]):
-        v = s[i].reshape(-1) if mask is None else s[i][mask[i]].reshape(-1)
-        if v.numel() > 200_000:  # quantile of a deterministic subsample keeps this cheap
-            v = v[:: v.numel() // 200_000 + 1]
-        out.append(torch.quantile(v.float(), q).to(s.dtype))
-    return torch.stack(out).view(-1, 1, 1, 1).clamp_min(_SHADING_FLOOR)
+    shading_white: torch.Tensor | None = None
+    albedo_excess: torch.Tensor | None = None
+    working_size: tuple[int, int] | None = None
 
 
 def _gray_shading(image: torch.Tensor, refl: torch.Tensor) -> torch.Tensor:
     """Gray ``S = Σ_c I_c / Σ_c R_c`` (the least-squares-like gray ratio), floored."""
     s = image.sum(1, keepdim=True) / refl.sum(1, keepdim=True).clamp_min(_SHADING_FLOOR)
     return s.clamp_min(_SHADING_FLOOR)
+
+
+def _final_shading(
+    img: torch.Tensor, refl: torch.Tensor, sigma: torch.Tensor, params: Parameters
+) -> torch.Tensor:
+    """The working-resolution shading of the output: Stage 2's ``I / R``, except where the
+    image carries no information.
+
+    In a dark pixel ``I ≈ 0``, so ``I / R`` is ≈ 0 whatever the light there: the shading
+    would show every black object as an unlit hole. Where the pixel confidence ``c``
+    (:func:`~torchiid.priors.shading_terms.pixel_confidence`) is below 1 the log-shading is
+    blended toward Stage 1's ``σ``, which the confidence-aware ``S_l`` made a smooth
+    continuation of the surroundings there: ``log S = c·log(I / R) + (1 − c)·log σ``.
+    """
+    s2 = _gray_shading(img, refl)
+    if params.dark_level <= 0 and params.clip_level <= 0:
+        return s2
+    c = pixel_confidence(img, params.dark_level, params.clip_level)
+    if bool((c >= 1).all()):
+        return s2
+    log_s = c * s2.log() + (1 - c) * sigma.clamp_min(_SHADING_FLOOR).log()
+    return log_s.exp()
 
 
 def _log_luminance(image: torch.Tensor, eps: float) -> torch.Tensor:
@@ -125,6 +167,7 @@ def decompose(
     mask: torch.Tensor | None = None,
     features: SemanticFeatures | None = None,
     return_iterations: bool = False,
+    return_stage1: bool = True,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> Decomposition:
     """Decompose linear RGB images into reflectance and shading (the paper's full method).
@@ -139,12 +182,16 @@ def decompose(
         features: precomputed Stage 0 features (at the working resolution), e.g. to run
             several parameter sets on one image.
         return_iterations: keep every alternation's ``σ, ρ, R, S`` (paper Fig. 5).
+        return_stage1: also bring the last Stage 1 layers ``σ, ρ`` to full resolution
+            (``False`` saves two full-resolution layers on large photos).
         progress: called as ``progress(stage, k, total)`` with stage ``"features"`` and then
             ``"iteration"`` after each alternation ``k = 1..total``.
 
     Returns:
-        :class:`Decomposition`. Outputs are detached (the method is an optimisation, not a
-        differentiable layer).
+        :class:`Decomposition` at the input's resolution and dtype. float16 and bfloat16
+        inputs are solved in float32 (their range and precision cannot hold the solver's
+        systems) and the layers returned in the input dtype. Outputs are detached (the
+        method is an optimisation, not a differentiable layer).
 
     Example:
         >>> from torchiid.synthetic import mondrian
@@ -155,6 +202,8 @@ def decompose(
         (torch.Size([1, 3, 64, 64]), torch.Size([1, 1, 64, 64]))
         >>> bool(torch.allclose(out.reflectance * out.shading, img, atol=1e-5))
         True
+        >>> bool(out.reflectance.max() <= 1)
+        True
     """
     from torchiid.stages.reflectance import ReflectanceCache, solve_reflectance
     from torchiid.stages.shading import ShadingSystemCache, solve_shading
@@ -162,6 +211,9 @@ def decompose(
     params = params if params is not None else Parameters.preset("default")
     t_start = time.perf_counter()
     image, mask = _check_inputs(image, mask, params)
+    in_dtype = image.dtype
+    if in_dtype in (torch.float16, torch.bfloat16):
+        image = image.float()
     big_h, big_w = image.shape[-2:]
     h, w = working_size(big_h, big_w, params.max_side)
     img = downsample(image, (h, w))
@@ -212,6 +264,8 @@ def decompose(
                 t_m=params.t_m,
                 matting_eps=params.matting_eps,
                 dark_eps=params.dark_eps,
+                dark_level=params.dark_level,
+                clip_level=params.clip_level,
                 lle_k=params.lle_k,
                 lle_reg=params.lle_reg,
                 lle_neighbours=params.lle_neighbours,
@@ -271,39 +325,163 @@ def decompose(
         if progress is not None:
             progress("iteration", k, params.iterations)
 
-    # final layers at full resolution, I = R * S exactly, S gray with 99th percentile 1
-    log_s = _gray_shading(img, refl).log()
-    if (h, w) != (big_h, big_w):
-        log_s = guided_upsample(
-            log_s, _log_luminance(img, params.dark_eps), _log_luminance(image, params.dark_eps)
-        )
-    shading = log_s.exp()
-    scale = _percentile_scale(shading, mask)
-    shading = (shading / scale).clamp_min(_SHADING_FLOOR)
-    reflectance = image / shading
-    sig = sigma / _percentile_scale(sigma, msk)
-    if (h, w) != (big_h, big_w):
-        sig = guided_upsample(
-            sig.clamp_min(_SHADING_FLOOR).log(),
-            _log_luminance(img, params.dark_eps),
-            _log_luminance(image, params.dark_eps),
-        ).exp()
-    sig = sig.clamp_min(_SHADING_FLOOR)
-    rho_full = image / sig
-    if mask is not None:
-        keep = mask.to(image.dtype)
-        reflectance, shading = reflectance * keep, shading * keep
-        sig, rho_full = sig * keep, rho_full * keep
+    # final layers at full resolution: S brought up edge-aware, R = I / S, R an albedo in [0, 1]
+    guide_low = _log_luminance(img, params.dark_eps)
+    final = full_resolution_layers(
+        image, _final_shading(img, refl, sigma, params), guide_low, mask, params
+    )
+    stage1 = None
+    if return_stage1:
+        stage1 = full_resolution_layers(image, sigma, guide_low, mask, params)
+    if return_iterations:
+        layers = [_normalised_iteration(img, it, msk, params) for it in layers]
     times["total"] = time.perf_counter() - t_start
+
+    def back(x: torch.Tensor | None) -> torch.Tensor | None:
+        return x if x is None or x.dtype == in_dtype else x.to(in_dtype)
+
     return Decomposition(
-        reflectance=reflectance,
-        shading=shading,
-        sigma=sig,
-        rho=rho_full,
-        iterations=tuple(layers),
+        reflectance=back(final.reflectance),
+        shading=back(final.shading),
+        sigma=None if stage1 is None else back(stage1.shading),
+        rho=None if stage1 is None else back(stage1.reflectance),
+        iterations=tuple(
+            IterationLayers(*(back(getattr(it, n)) for n in ("sigma", "rho", "R", "S")))
+            for it in layers
+        ),
         params=params,
         times=times,
         mask=mask,
+        shading_white=final.shading_white,
+        albedo_excess=final.albedo_excess,
+        working_size=(h, w),
+    )
+
+
+@dataclass(frozen=True)
+class FullLayers:
+    """Full-resolution layers of one shading estimate (see :func:`full_resolution_layers`).
+
+    Attributes:
+        reflectance: ``(B, 3, H, W)`` albedo in ``[0, 1]``, 0 outside the mask.
+        shading: ``(B, 1, H, W)`` gray shading (may exceed 1), 0 outside the mask.
+        shading_white: ``(B,)`` the shading's ``params.view_quantile`` quantile inside the
+            mask: the value shown as white in the viewable shading.
+        albedo_excess: ``(B,)`` fraction of the pixels (inside the mask) whose reflectance
+            exceeded 1 after the global scale and had the excess moved into the shading.
+    """
+
+    reflectance: torch.Tensor
+    shading: torch.Tensor
+    shading_white: torch.Tensor
+    albedo_excess: torch.Tensor
+
+
+def _subsample(x: torch.Tensor, limit: int = 1 << 20) -> tuple[torch.Tensor, int]:
+    """A regular sub-grid of ``(B, C, H, W)`` with at most about ``limit`` pixels per image."""
+    step = max(1, int(math.ceil(math.sqrt(x.shape[-2] * x.shape[-1] / limit))))
+    return x[..., ::step, ::step], step
+
+
+def _masked_quantiles(
+    x: torch.Tensor, mask: torch.Tensor | None, q: float, default: float
+) -> torch.Tensor:
+    """Per-image ``q``-quantile of ``(B, 1, h, w)`` inside the mask, ``(B,)``."""
+    out = []
+    for i in range(x.shape[0]):
+        v = x[i].reshape(-1) if mask is None else x[i][mask[i]].reshape(-1)
+        out.append(torch.quantile(v.float(), q) if v.numel() else torch.tensor(default))
+    return torch.stack(out).to(x.device, x.dtype)
+
+
+def full_resolution_layers(
+    image: torch.Tensor,
+    shading_low: torch.Tensor,
+    guide_low: torch.Tensor | None,
+    mask: torch.Tensor | None,
+    params: Parameters,
+) -> FullLayers:
+    """Full-resolution ``(R, S)`` from a shading solved at the working resolution.
+
+    1. ``log S`` is upsampled by guided filtering with the full-resolution log-luminance as
+       guide (:class:`~torchiid.resample.GuidedUpsampler`), band by band; at the working
+       resolution itself it is used as it is.
+    2. ``R = I / S``, so the reflectance keeps every full-resolution detail of the photo.
+    3. **Scale convention** (``R · S`` is ambiguous up to a factor): the global factor makes
+       the ``params.albedo_quantile`` quantile (default 0.999) of ``max_c R_c`` inside the
+       mask equal to 1 — reflectance is an albedo in ``[0, 1]`` and the shading carries the
+       rest (it may exceed 1: it is high dynamic range by nature). The few pixels above that
+       quantile (specular highlights, light sources, noise in the dark) keep ``R ≤ 1`` by
+       moving their excess ``max_c R_c`` into the shading, so ``R · S == I`` still holds
+       exactly. A quantile rather than the maximum keeps one outlier from darkening the
+       whole albedo.
+
+    Args:
+        image: ``(B, 3, H, W)`` full-resolution linear RGB.
+        shading_low: ``(B, 1, h, w)`` positive shading at the working resolution.
+        guide_low: ``(B, 1, h, w)`` log-luminance of the working-resolution image (unused,
+            may be ``None``, when ``shading_low`` is at full resolution).
+        mask: ``(B, 1, H, W)`` bool or ``None``; outside it both layers are 0.
+        params: supplies ``albedo_quantile``, ``view_quantile``, ``dark_eps`` and the guided
+            filter's ``guide_radius`` / ``guide_eps``.
+
+    Returns:
+        :class:`FullLayers`.
+    """
+    b, _, big_h, big_w = image.shape
+    log_low = shading_low.clamp_min(_SHADING_FLOOR).log()
+    shading = image.new_empty(b, 1, big_h, big_w)
+    if tuple(log_low.shape[-2:]) == (big_h, big_w):
+        torch.exp(log_low, out=shading)
+    else:
+        up = GuidedUpsampler(
+            log_low, guide_low, (big_h, big_w), params.guide_radius, params.guide_eps
+        )
+        for rows in row_bands(big_h, big_w):
+            band = up.band(rows, _log_luminance(image[:, :, rows], params.dark_eps))
+            shading[:, :, rows] = band.exp_()
+    shading.clamp_min_(_SHADING_FLOOR)
+    # global scale from a sub-grid (about a megapixel is plenty for a quantile)
+    img_s, step = _subsample(image)
+    peak_s = (img_s / shading[..., ::step, ::step]).amax(1, keepdim=True)
+    msk_s = None if mask is None else mask[..., ::step, ::step]
+    k = _masked_quantiles(peak_s, msk_s, params.albedo_quantile, 1.0)
+    k = torch.where(k > 1e-12, k, torch.ones_like(k)).view(b, 1, 1, 1)  # black image: R = 0
+    reflectance = image.new_empty(b, 3, big_h, big_w)
+    moved = torch.zeros(b, device=image.device, dtype=torch.float64)
+    for rows in row_bands(big_h, big_w):
+        s_band = shading[:, :, rows].mul_(k)
+        i_band = image[:, :, rows]
+        excess = (i_band / s_band).amax(1, keepdim=True)
+        over = excess > 1
+        if mask is not None:
+            over &= mask[:, :, rows]
+        moved += over.flatten(1).sum(1)
+        s_band.mul_(excess.clamp_min_(1))
+        torch.div(i_band, s_band, out=reflectance[:, :, rows])
+        reflectance[:, :, rows].clamp_(0, 1)  # R <= 1 already; removes 1 + 1 ulp
+    if mask is not None:
+        keep = mask.to(image.dtype)
+        shading.mul_(keep)
+        reflectance.mul_(keep)
+        area = mask.flatten(1).sum(1).to(torch.float64)
+    else:
+        area = torch.full((b,), float(big_h * big_w), dtype=torch.float64, device=image.device)
+    shade_s = shading[..., ::step, ::step]
+    white = _masked_quantiles(shade_s, msk_s, params.view_quantile, 1.0)
+    white = torch.where(white > 0, white, torch.ones_like(white))
+    return FullLayers(reflectance, shading, white, (moved / area).to(torch.float32))
+
+
+def _normalised_iteration(
+    img: torch.Tensor, it: IterationLayers, msk: torch.Tensor | None, params: Parameters
+) -> IterationLayers:
+    """An alternation's layers in the output convention (albedos in [0, 1])."""
+    guide = _log_luminance(img, params.dark_eps)
+    st1 = full_resolution_layers(img, it.sigma, guide, msk, params)
+    st2 = full_resolution_layers(img, it.S, guide, msk, params)
+    return IterationLayers(
+        sigma=st1.shading, rho=st1.reflectance, R=st2.reflectance, S=st2.shading
     )
 
 

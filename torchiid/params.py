@@ -47,6 +47,13 @@ class Parameters:
         t_m: deviation of ``S_m``'s weights on ``1 - <g_i, g_j>``.
         matting_eps: ε of the matting Laplacian (Levin et al.: 1e-5).
         dark_eps: intensities are clamped to at least this before taking logs.
+        dark_level: pixels whose brightest channel is below this linear value (sRGB code 6.5
+            at 0.002) carry no information about the shading: ``S_l`` asks for smooth shading
+            there instead of copying their noise (confidence ramps to 1 at twice the level;
+            0 turns it off). See :func:`~torchiid.priors.shading_terms.pixel_confidence`.
+        clip_level: likewise for pixels with a channel at the ceiling of a low-dynamic-range
+            image (linear value >= ``clip_level``, ramping in over the 0.03 below it); images
+            with values above 1 have no ceiling. 0 turns it off.
         cg_tol: relative residual at which the shading PCG stops.
         cg_max_iter: cap on shading PCG iterations (per level of the first, coarse-to-fine
             solve).
@@ -79,9 +86,19 @@ class Parameters:
     Switches (ablations): use_sc, use_sp, use_sm, use_sl, use_rl, use_rm, use_rg turn single
     priors on or off; ``stage1`` / ``stage2`` turn whole stages off (baselines 1 and 2).
 
-    Working resolution:
+    Working resolution and outputs:
         max_side: images whose longer side exceeds this are decomposed at this size and the
-            layers brought back to full resolution edge-aware (0 = never resize).
+            layers brought back to full resolution edge-aware (0 = never resize). The default,
+            512, was chosen by measurement (README: quality against working resolution on
+            MIT-Berkeley, time and memory against photo size).
+        guide_radius: box radius (working-resolution pixels) of the guided filter that
+            upsamples the log-shading.
+        guide_eps: regulariser of that guided filter (squared log-luminance units).
+        albedo_quantile: the global scale makes this quantile of the per-pixel maximum
+            reflectance channel equal to 1 (reflectance is an albedo in [0, 1]); pixels above
+            it move their excess into the shading.
+        view_quantile: quantile of the shading shown as white in the viewable shading PNG
+            (the factor is recorded as ``shading_white``).
     """
 
     # Stage 0
@@ -105,6 +122,8 @@ class Parameters:
     t_m: float = 0.05
     matting_eps: float = 1e-5
     dark_eps: float = 1e-4
+    dark_level: float = 0.002
+    clip_level: float = 0.99
     cg_tol: float = 1e-4
     cg_max_iter: int = 300
     warm_cg_max_iter: int = 0
@@ -132,8 +151,12 @@ class Parameters:
     use_rg: bool = True
     stage1: bool = True
     stage2: bool = True
-    # working resolution
-    max_side: int = 0
+    # working resolution and outputs
+    max_side: int = 512
+    guide_radius: int = 2
+    guide_eps: float = 1e-3
+    albedo_quantile: float = 0.999
+    view_quantile: float = 0.99
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -180,6 +203,8 @@ class Parameters:
             "cg_tol",
             "bregman_tol",
             "segment_scale",
+            "guide_radius",
+            "guide_eps",
         ]
         for name in positive:
             if getattr(self, name) <= 0:
@@ -195,10 +220,17 @@ class Parameters:
             "lle_reg",
             "max_side",
             "warm_cg_max_iter",
+            "dark_level",
+            "clip_level",
         ]
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise ParameterError(f"parameter {name} must be >= 0, got {getattr(self, name)}")
+        for name in ("albedo_quantile", "view_quantile"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ParameterError(
+                    f"parameter {name} must be in (0, 1], got {getattr(self, name)}"
+                )
         if self.patch_stride > self.patch_size:
             raise ParameterError(
                 f"patch_stride ({self.patch_stride}) larger than patch_size ({self.patch_size}) "

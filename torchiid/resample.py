@@ -4,15 +4,33 @@ Large photos are decomposed at a working resolution; the log-shading is brought 
 resolution with guided upsampling (He & Sun 2015, "Fast guided filter"): the local linear model
 ``log S ≈ a · log Y + b`` (``Y`` the image's luminance) is fitted in box windows at the low
 resolution, its coefficients ``a, b`` are upsampled bilinearly, and applied to the full-resolution
-guide. Shading edges therefore follow the full-resolution image, so outputs are never blurry.
+guide. Where the shading follows the image (a shadow edge) ``a ≈ 1`` and the edge is as sharp as
+the photo's; across a reflectance edge the shading does not follow the image, ``a ≈ 0``, and the
+shading stays smooth, so no halo is copied into it.
+
+Memory: :class:`GuidedUpsampler` evaluates the full-resolution result in bands of rows
+(:func:`row_bands`), so besides its output only one band's temporaries exist at a time — the
+cost of a 24-megapixel photo is its few full-resolution layers, not a dozen float copies.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+
 import torch
 import torch.nn.functional as F
 
-__all__ = ["working_size", "downsample", "guided_upsample"]
+__all__ = [
+    "working_size",
+    "downsample",
+    "guided_upsample",
+    "GuidedUpsampler",
+    "bilinear_rows",
+    "row_bands",
+]
+
+#: pixels per band of the banded full-resolution passes (about 1 megapixel)
+BAND_PIXELS = 1 << 20
 
 
 def working_size(height: int, width: int, max_side: int) -> tuple[int, int]:
@@ -30,8 +48,92 @@ def downsample(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     return F.interpolate(x, size=size, mode="area")
 
 
+def row_bands(height: int, width: int, pixels: int = BAND_PIXELS) -> Iterator[slice]:
+    """Slices of rows covering ``height`` rows, each of about ``pixels`` pixels."""
+    rows = max(1, pixels // max(width, 1))
+    for y in range(0, height, rows):
+        yield slice(y, min(height, y + rows))
+
+
+def _linear_taps(
+    n_in: int, n_out: int, start: int, stop: int, device: torch.device, dtype: torch.dtype
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Source indices and weight of linear interpolation, ``align_corners=False`` convention."""
+    dst = torch.arange(start, stop, device=device, dtype=torch.float64)
+    src = ((dst + 0.5) * (n_in / n_out) - 0.5).clamp_min(0)
+    i0 = src.floor().long().clamp_max(n_in - 1)
+    i1 = (i0 + 1).clamp_max(n_in - 1)
+    return i0, i1, (src - i0).to(dtype)
+
+
+def bilinear_rows(x: torch.Tensor, size: tuple[int, int], rows: slice) -> torch.Tensor:
+    """Rows ``rows`` of ``F.interpolate(x, size, mode="bilinear", align_corners=False)``.
+
+    Computes only the requested band, so a large upsampled map never has to exist whole.
+
+    Shape:
+        x ``(B, C, h, w)`` -> ``(B, C, len(rows), W)`` with ``(H, W) = size``.
+    """
+    big_h, big_w = size
+    h, w = x.shape[-2:]
+    y0, y1, ly = _linear_taps(h, big_h, rows.start, rows.stop, x.device, x.dtype)
+    x0, x1, lx = _linear_taps(w, big_w, 0, big_w, x.device, x.dtype)
+    ly = ly.view(-1, 1)
+    t = x[:, :, y0] * (1 - ly) + x[:, :, y1] * ly
+    return t[..., x0] * (1 - lx) + t[..., x1] * lx
+
+
 def _box(x: torch.Tensor, r: int) -> torch.Tensor:
     return F.avg_pool2d(F.pad(x, (r, r, r, r), mode="replicate"), 2 * r + 1, stride=1)
+
+
+class GuidedUpsampler:
+    """Fast guided upsampling of a one-channel map, evaluated band by band.
+
+    Args:
+        low: ``(B, 1, h, w)`` the map to upsample (e.g. log-shading).
+        guide_low: ``(B, 1, h, w)`` the guide at low resolution (e.g. log-luminance).
+        size: the full resolution ``(H, W)``.
+        radius: box radius of the local linear fit, in low-resolution pixels.
+        eps: regulariser of the fit (in squared guide units).
+
+    Call :meth:`band` with the full-resolution guide's rows to get those rows of the result.
+    """
+
+    def __init__(
+        self,
+        low: torch.Tensor,
+        guide_low: torch.Tensor,
+        size: tuple[int, int],
+        radius: int = 2,
+        eps: float = 1e-3,
+    ) -> None:
+        mean_g = _box(guide_low, radius)
+        mean_x = _box(low, radius)
+        cov = _box(guide_low * low, radius) - mean_g * mean_x
+        var = _box(guide_low * guide_low, radius) - mean_g * mean_g
+        a = cov / (var + eps)
+        b = mean_x - a * mean_g
+        self.a = _box(a, radius)
+        self.b = _box(b, radius)
+        self.size = (int(size[0]), int(size[1]))
+
+    def band(self, rows: slice, guide_rows: torch.Tensor) -> torch.Tensor:
+        """Rows ``rows`` of the result from the same rows of the full-resolution guide."""
+        a = bilinear_rows(self.a, self.size, rows)
+        b = bilinear_rows(self.b, self.size, rows)
+        return a.mul_(guide_rows).add_(b)
+
+    def full(
+        self, guide: Callable[[slice], torch.Tensor], out: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """The whole ``(B, 1, H, W)`` result; ``guide(rows)`` gives the guide's rows."""
+        b = self.a.shape[0]
+        if out is None:
+            out = self.a.new_empty(b, 1, *self.size)
+        for rows in row_bands(*self.size):
+            out[:, :, rows] = self.band(rows, guide(rows))
+        return out
 
 
 def guided_upsample(
@@ -55,13 +157,5 @@ def guided_upsample(
     """
     if tuple(low.shape[-2:]) == tuple(guide_full.shape[-2:]):
         return low
-    mean_g = _box(guide_low, radius)
-    mean_x = _box(low, radius)
-    cov = _box(guide_low * low, radius) - mean_g * mean_x
-    var = _box(guide_low * guide_low, radius) - mean_g * mean_g
-    a = cov / (var + eps)
-    b = mean_x - a * mean_g
-    size = guide_full.shape[-2:]
-    a_up = F.interpolate(_box(a, radius), size=size, mode="bilinear", align_corners=False)
-    b_up = F.interpolate(_box(b, radius), size=size, mode="bilinear", align_corners=False)
-    return a_up * guide_full + b_up
+    up = GuidedUpsampler(low, guide_low, tuple(guide_full.shape[-2:]), radius, eps)
+    return up.full(lambda rows: guide_full[:, :, rows])

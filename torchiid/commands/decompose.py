@@ -15,7 +15,9 @@ import torch
 
 from torchiid.core.exceptions import ParameterError, TorchiidError
 from torchiid.io import load_image, load_mask, save_image
+from torchiid.io.layers import layer_file_names, write_layers
 from torchiid.params import Parameters
+from torchiid.priors.shading_terms import pixel_confidence
 
 log = logging.getLogger("torchiid")
 
@@ -51,57 +53,78 @@ def params_from_args(args: argparse.Namespace) -> Parameters:
 
 def output_names(stem: str, args: argparse.Namespace, params: Parameters) -> list[str]:
     """Every file name ``decompose`` writes for an input of this stem."""
-    names = [
-        f"{stem}-reflectance.png",
-        f"{stem}-shading.png",
-        f"{stem}-preview.png",
-        f"{stem}-params.json",
-    ]
-    if args.save_linear:
-        names += [f"{stem}-reflectance-linear16.png", f"{stem}-shading-linear16.png"]
-    if args.save_npy:
-        names += [f"{stem}-reflectance.npy", f"{stem}-shading.npy"]
+    names = layer_file_names(
+        stem, save_npy=args.save_npy, save_confidence=args.save_confidence
+    )
     if args.save_iterations and args.method == "semantic":
         for k in range(1, params.iterations + 1):
             names += [f"{stem}-iter{k}-{layer}.png" for layer in ("sigma", "rho", "R", "S")]
     return names
 
 
-def _preview(image: torch.Tensor, refl: torch.Tensor, shading: torch.Tensor) -> torch.Tensor:
-    """``[I | R | S]`` side by side, linear, ``(3, H, 3W + 2 gaps)``."""
-    gap = image.new_ones(3, image.shape[1], 4)
-    return torch.cat([image, gap, refl, gap, shading.expand(3, -1, -1)], dim=2)
-
-
 def _write_outputs(
-    out: Path, stem: str, image: torch.Tensor, result, args, params, method: str
+    out: Path, stem: str, loaded, result, args, params: Parameters, method: str, seconds: float
 ) -> None:
-    """Write every layer of one image atomically (see :func:`output_names`)."""
-    refl = result.reflectance[0].cpu()
-    shad = result.shading[0].cpu()
-    save_image(out / f"{stem}-reflectance.png", refl, "srgb8")
-    save_image(out / f"{stem}-shading.png", shad, "srgb8")
-    save_image(out / f"{stem}-preview.png", _preview(image, refl, shad), "srgb8")
-    if args.save_linear:
-        save_image(out / f"{stem}-reflectance-linear16.png", refl, "linear16")
-        save_image(out / f"{stem}-shading-linear16.png", shad, "linear16")
-    if args.save_npy:
-        save_image(out / f"{stem}-reflectance.npy", refl, "npy")
-        save_image(out / f"{stem}-shading.npy", shad, "npy")
+    """Write every layer of one image (see :mod:`torchiid.io.layers`)."""
+    image = loaded.image
+    mask = None if result.mask is None else result.mask[0].cpu()
+    confidence = None
+    if args.save_confidence:
+        confidence = pixel_confidence(image[None], params.dark_level, params.clip_level)[0]
+        if mask is not None:
+            confidence = confidence * mask
+    if method == "semantic":
+        params_json = params.to_json()
+    else:
+        params_json = json.dumps({"method": "color_retinex", **RETINEX_DEFAULTS}, indent=2) + "\n"
+    white = float(result.shading_white[0])
+    info = {
+        "input": str(loaded.path),
+        "method": method,
+        "working_size": list(reversed(result.working_size)) if result.working_size else None,
+        "exif_orientation": getattr(loaded, "orientation", 1),
+        "albedo_quantile": params.albedo_quantile,
+        "albedo_excess": float(result.albedo_excess[0]),
+        "seconds": round(seconds, 3),
+    }
+    write_layers(
+        out,
+        stem,
+        image,
+        result.reflectance[0].cpu(),
+        result.shading[0].cpu(),
+        shading_white=white,
+        info=info,
+        params_json=params_json,
+        mask=mask,
+        confidence=confidence,
+        save_npy=args.save_npy,
+    )
     if args.save_iterations and getattr(result, "iterations", None):
         for k, layers in enumerate(result.iterations, start=1):
             for name in ("sigma", "rho", "R", "S"):
-                save_image(
-                    out / f"{stem}-iter{k}-{name}.png", getattr(layers, name)[0].cpu(), "srgb8"
-                )
-    target = out / f"{stem}-params.json"
-    if method == "semantic":
-        params.to_json(target)  # the same format --params reads back
-    else:
-        text = json.dumps({"method": "color_retinex", **RETINEX_DEFAULTS}, indent=2) + "\n"
-        tmp = target.with_name(f".{target.name}.tmp")
-        tmp.write_text(text)
-        os.replace(tmp, target)
+                x = getattr(layers, name)[0].cpu()
+                if name in ("sigma", "S"):
+                    x = x / torch.quantile(x.flatten(), params.view_quantile).clamp_min(1e-12)
+                save_image(out / f"{stem}-iter{k}-{name}.png", x, "srgb8")
+
+
+def _retinex(batch: torch.Tensor, mask: torch.Tensor | None, params: Parameters):
+    """Colour Retinex in the same output convention as the method."""
+    from torchiid.baselines.retinex import color_retinex
+    from torchiid.model import full_resolution_layers
+
+    refl, shad = color_retinex(batch, mask=mask, **RETINEX_DEFAULTS)
+    layers = full_resolution_layers(batch, shad.clamp_min(1e-4), None, mask, params)
+    return SimpleNamespace(
+        reflectance=layers.reflectance,
+        shading=layers.shading,
+        shading_white=layers.shading_white,
+        albedo_excess=layers.albedo_excess,
+        working_size=tuple(batch.shape[-2:]),
+        mask=mask,
+        iterations=(),
+    )
 
 
 def run_decompose(args: argparse.Namespace) -> int:
@@ -147,10 +170,7 @@ def run_decompose(args: argparse.Namespace) -> int:
             batch = image[None].to(device)
             mbatch = mask[None].to(device) if mask is not None else None
             if args.method == "retinex":
-                from torchiid.baselines.retinex import color_retinex
-
-                refl, shad = color_retinex(batch, mask=mbatch, **RETINEX_DEFAULTS)
-                result = SimpleNamespace(reflectance=refl, shading=shad, iterations=())
+                result = _retinex(batch, mbatch, params)
             else:
                 it_bar = tqdm(
                     total=params.iterations,
@@ -171,19 +191,23 @@ def run_decompose(args: argparse.Namespace) -> int:
                         params,
                         mask=mbatch,
                         return_iterations=args.save_iterations,
+                        return_stage1=False,
                         progress=progress,
                     )
                 finally:
                     it_bar.close()
-            _write_outputs(out, stem, image, result, args, params, args.method)
-            done = f"{path} -> {out}/{stem}-*.png ({time.perf_counter() - t0:.1f} s)"
+            seconds = time.perf_counter() - t0
+            _write_outputs(out, stem, loaded, result, args, params, args.method, seconds)
+            done = f"{path} -> {out}/{stem}-* ({time.perf_counter() - t0:.1f} s)"
             if show:
                 tqdm.write(done, file=sys.stderr)
             else:
                 log.info(done)
-        except TorchiidError as exc:
+        except (TorchiidError, RuntimeError, MemoryError, OSError) as exc:
             failures += 1
-            msg = str(exc)
+            msg = str(exc) if isinstance(exc, TorchiidError) else f"{type(exc).__name__}: {exc}"
+            if str(path) not in msg:
+                msg = f"{path}: {msg}"
             print(f"torchiid: error: {msg}", file=sys.stderr)
     bar.close()
     if failures:

@@ -62,11 +62,12 @@ SETTINGS = ("dataset", "dir", "method", "results_dir", "input", "delta", "parame
 
 EPILOG = """\
 results folder (--results DIR): instead of running a method, read the layers of every
-dataset id from DIR: <id>-reflectance.npy and <id>-shading.npy (float32 linear, as written
-by `torchiid decompose --save-npy`; preferred when present), else <id>-reflectance.png and
-<id>-shading.png (8-bit sRGB, as written by `torchiid decompose`, decoded to linear). The
-id is the IIW/SAW photo id, the MIT object name, or the dense image name; the layers must
-have the image's size.
+dataset id from DIR, the exact files first: <id>-reflectance.npy and <id>-shading.npy
+(float32 linear, `torchiid decompose --save-npy`), else <id>-reflectance-linear16.png and
+<id>-shading.exr (16-bit linear and float OpenEXR, written by `torchiid decompose`), else
+<id>-reflectance.png and <id>-shading.png (8-bit sRGB, decoded to linear). The id is the
+IIW/SAW photo id, the MIT object name, or the dense image name; the layers must have the
+image's size.
 
 resuming: results.csv gets a row as each image finishes. With --resume (the default) the
 ids already in it are skipped and counted in the summary; the run's settings must match
@@ -226,16 +227,26 @@ def _method_parameters(method: str, params) -> dict[str, Any]:
 
 
 def _load_layer(results: Path, sample_id: str, layer: str) -> torch.Tensor:
-    """Read ``<id>-<layer>.npy`` (linear) or ``.png`` (sRGB) as ``(1, C, H, W)`` linear."""
+    """One layer of a results folder as ``(1, C, H, W)`` linear.
+
+    The exact files are preferred: ``<id>-<layer>.npy`` (float32), then
+    ``<id>-reflectance-linear16.png`` / ``<id>-shading.exr``, and only then the viewable 8-bit
+    sRGB ``<id>-<layer>.png``.
+    """
     from torchiid.io import load_image
 
-    npy = results / f"{sample_id}-{layer}.npy"
-    png = results / f"{sample_id}-{layer}.png"
-    path = npy if npy.is_file() else png
-    if not path.is_file():
-        raise TorchiidError(f"{results}: no {npy.name} or {png.name}")
-    img = load_image(path, linear=False, alpha="ignore", min_side=1).image
-    return (img.mean(dim=0, keepdim=True) if layer == "shading" else img)[None]
+    exact = "reflectance-linear16.png" if layer == "reflectance" else "shading.exr"
+    candidates = [
+        (results / f"{sample_id}-{layer}.npy", False),
+        (results / f"{sample_id}-{exact}", True),
+        (results / f"{sample_id}-{layer}.png", False),
+    ]
+    for path, linear in candidates:
+        if path.is_file():
+            img = load_image(path, linear=linear, alpha="ignore", min_side=1).image
+            return (img.mean(dim=0, keepdim=True) if layer == "shading" else img)[None]
+    names = ", ".join(p.name for p, _ in candidates)
+    raise TorchiidError(f"{results}: none of {names}")
 
 
 # --------------------------------------------------------------------------- scoring

@@ -58,6 +58,22 @@ def patch_mean_rgb(image: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
     return (s / area).transpose(1, 2)
 
 
+def _pca_features(mid, dim: int) -> torch.Tensor:
+    """``g̊`` with ``dim`` channels for every image of a ``MidLevelBatch``.
+
+    A featureless image (fewer proposals than ``dim``, e.g. one constant colour) gets the
+    components it has and zeros for the rest, which add nothing to any distance.
+    """
+    out = []
+    for item in mid:
+        avail = min(dim, item.num_proposals)
+        g = item.pca(avail)
+        if avail < dim:
+            g = torch.cat([g, g.new_zeros(g.shape[0], dim - avail, *g.shape[2:])], dim=1)
+        out.append(g)
+    return torch.cat(out)
+
+
 def semantic_features(image: torch.Tensor, params: Parameters) -> SemanticFeatures:
     """Compute Stage 0 for a batch of linear RGB images ``(B, 3, H, W)``."""
     from torchiid.features.midlevel import midlevel_features_batch
@@ -106,7 +122,7 @@ def semantic_features(image: torch.Tensor, params: Parameters) -> SemanticFeatur
             if params.stage1 and params.use_sm and params.lambda_m > 0:
                 sim = mid.similarity(shading_stencil(h, w, device=image.device))
             if params.stage2 and params.use_rm and params.gamma_m > 0:
-                gpca = mid.pca(params.proposal_pca_dim)
+                gpca = _pca_features(mid, params.proposal_pca_dim)
             times["mid-level g"] = time.perf_counter() - t0
         if seg_result is not None:
             t0 = time.perf_counter()

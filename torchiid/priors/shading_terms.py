@@ -32,6 +32,7 @@ __all__ = [
     "retinex_weights",
     "retinex_term",
     "intensity",
+    "pixel_confidence",
 ]
 
 
@@ -88,16 +89,61 @@ def midlevel_term(
     return StencilQuadratic(stencil, w if pm is None else w * pm)
 
 
+#: Largest value an image may reach and still count as low dynamic range (values in [0, 1]);
+#: only such images can have pixels clipped at the ceiling.
+_LDR_MAX = 1.0 + 1e-3
+
+
+def pixel_confidence(
+    image: torch.Tensor, dark_level: float = 0.002, clip_level: float = 0.99
+) -> torch.Tensor:
+    """How much each pixel's colour can be trusted, ``(B, 3, H, W) -> (B, 1, H, W)`` in [0, 1].
+
+    Two kinds of pixel carry no information about the shading's variation:
+
+    * **dark** ones: with every channel near 0 the sensor noise and the 8-bit quantisation
+      dominate (a linear value of 0.002 is sRGB code 6.5, one code step there is a 30%
+      change of intensity), so ``log p`` differences and chromaticities are noise. The
+      confidence ramps from 0 at ``max_c I_c = dark_level`` to 1 at ``2 * dark_level``.
+    * **clipped** ones: a channel at the ceiling of a low-dynamic-range image (every value
+      ``<= 1``) lost the true intensity. The confidence ramps from 1 at
+      ``max_c I_c = clip_level - 0.03`` to 0 at ``clip_level``. Images with values above 1
+      (HDR input) have no ceiling and no clipped pixels.
+
+    ``dark_level = 0`` or ``clip_level = 0`` switches that kind off.
+
+    Shape:
+        image ``(B, 3, H, W)`` linear RGB -> ``(B, 1, H, W)``.
+    """
+    if dark_level < 0 or clip_level < 0:
+        raise ParameterError(
+            f"dark_level and clip_level must be >= 0, got {dark_level} and {clip_level}"
+        )
+    peak = image.amax(dim=1, keepdim=True)
+    conf = torch.ones_like(peak)
+    if dark_level > 0:
+        conf = conf * ((peak - dark_level) / dark_level).clamp(0, 1)
+    if clip_level > 0:
+        ldr = (image.flatten(1).amax(1) <= _LDR_MAX).to(image.dtype).view(-1, 1, 1, 1)
+        clipped = 1 - ((clip_level - peak) / 0.03).clamp(0, 1)
+        conf = conf * (1 - ldr * clipped)
+    return conf
+
+
 def retinex_weights(
     image: torch.Tensor,
     stencil: Stencil,
     t_c: float = 1e-4,
     t_b: float = 0.05,
     dark_eps: float = 1e-4,
+    confidence: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Pair weights ``w^l`` of ``S_l`` (Eq. 5), ``(B, 3, H, W) -> (B, K, H, W)``.
 
     ``exp(-(1 - <pbar_i, pbar_j>)^2 / t_c^2) * [1 + exp(-(p_i^2 + p_j^2) / t_b^2)]`` on linear RGB.
+    With a pixel ``confidence`` (:func:`pixel_confidence`) and ``c_ij = min(c_i, c_j)``, the
+    chromaticity factor becomes ``c_ij * exp(...) + (1 - c_ij)``: a pair without trustworthy
+    colours (dark or clipped) is not cut apart by its noisy chromaticity.
     """
     if t_c <= 0 or t_b <= 0:
         raise ParameterError(f"t_c and t_b must be > 0, got t_c={t_c}, t_b={t_b}")
@@ -107,8 +153,18 @@ def retinex_weights(
     p = intensity(image, dark_eps)
     pj = stencil.neighbours(p)[:, 0]
     dark = 1 + torch.exp(-(p**2 + pj**2) / t_b**2)
-    w = torch.exp(-((1 - cos) ** 2) / t_c**2) * dark
+    chroma = torch.exp(-((1 - cos) ** 2) / t_c**2)
+    if confidence is not None:
+        c = pair_confidence(stencil, confidence)
+        chroma = c * chroma + (1 - c)
+    w = chroma * dark
     return w * stencil.valid.to(w.device, w.dtype)
+
+
+def pair_confidence(stencil: Stencil, confidence: torch.Tensor) -> torch.Tensor:
+    """``min(c_i, c_j)`` for every stencil pair, ``(B, 1, H, W) -> (B, K, H, W)``."""
+    check_shape(confidence, ("B", 1, stencil.height, stencil.width), "confidence")
+    return torch.minimum(confidence, stencil.neighbours(confidence)[:, 0])
 
 
 def retinex_term(
@@ -118,6 +174,7 @@ def retinex_term(
     t_b: float = 0.05,
     dark_eps: float = 1e-4,
     mask: torch.Tensor | None = None,
+    confidence: torch.Tensor | None = None,
 ) -> StencilQuadratic:
     """The local Retinex prior ``S_l`` (Eq. 5) on the log-shading.
 
@@ -131,6 +188,12 @@ def retinex_term(
         t_b: dark-pixel deviation (paper: 0.05).
         dark_eps: intensity/channel floor before logs and normalisation.
         mask: optional ``(B, 1, H, W)`` bool; pairs leaving it get weight 0.
+        confidence: optional ``(B, 1, H, W)`` pixel confidence in [0, 1]
+            (:func:`pixel_confidence`). A pair's target difference is multiplied by
+            ``c_ij = min(c_i, c_j)`` and its chromaticity factor relaxed (see
+            :func:`retinex_weights`), so where the image carries no information (dark or
+            clipped pixels) the term asks for smooth shading (``s_i = s_j``) instead of
+            copying noise: the shading there continues its surroundings.
 
     Returns:
         ``StencilQuadratic`` with target differences of ``log p``.
@@ -141,10 +204,12 @@ def retinex_term(
             f"image is {tuple(image.shape[-2:])} but the stencil is "
             f"{(stencil.height, stencil.width)}"
         )
-    w = retinex_weights(image, stencil, t_c, t_b, dark_eps)
+    w = retinex_weights(image, stencil, t_c, t_b, dark_eps, confidence)
     pm = pair_mask(stencil, mask, w.dtype)
     if pm is not None:
         w = w * pm
     logp = intensity(image, dark_eps).log()
     target = stencil.apply(logp)[:, 0]
+    if confidence is not None:
+        target = target * pair_confidence(stencil, confidence)
     return StencilQuadratic(stencil, w, target)

@@ -42,7 +42,13 @@ from torchiid.core.exceptions import ConvergenceWarning, ParameterError, ShapeEr
 from torchiid.priors.lle import lle_term
 from torchiid.priors.matting import matting_laplacian, smooth_base
 from torchiid.priors.quadratic import QuadraticTerm, SumQuadratic
-from torchiid.priors.shading_terms import intensity, midlevel_term, retinex_term, shading_stencil
+from torchiid.priors.shading_terms import (
+    intensity,
+    midlevel_term,
+    pixel_confidence,
+    retinex_term,
+    shading_stencil,
+)
 from torchiid.solvers.pcg import pcg
 
 __all__ = [
@@ -188,6 +194,8 @@ def build_shading_system(
     t_m: float = 0.05,
     matting_eps: float = 1e-5,
     dark_eps: float = 1e-4,
+    dark_level: float = 0.0,
+    clip_level: float = 0.0,
     base_sigma: float = 1.0,
     lle_k: int = 10,
     lle_reg: float = 1e-3,
@@ -289,8 +297,20 @@ def build_shading_system(
         timed(
             "S_l",
             lambda_l,
-            lambda: retinex_term(image, stencil, t_c, t_b, dark_eps, mask),
-            input_key(given, t_c, t_b, dark_eps, mask),
+            lambda: retinex_term(
+                image,
+                stencil,
+                t_c,
+                t_b,
+                dark_eps,
+                mask,
+                confidence=(
+                    pixel_confidence(image, dark_level, clip_level)
+                    if dark_level > 0 or clip_level > 0
+                    else None
+                ),
+            ),
+            input_key(given, t_c, t_b, dark_eps, dark_level, clip_level, mask),
         )
     if not terms:
         raise ParameterError("every shading term is switched off; enable at least one")
@@ -315,6 +335,8 @@ def solve_shading(
     t_m: float = 0.05,
     matting_eps: float = 1e-5,
     dark_eps: float = 1e-4,
+    dark_level: float = 0.0,
+    clip_level: float = 0.0,
     base_sigma: float = 1.0,
     lle_k: int = 10,
     lle_reg: float = 1e-3,
@@ -352,6 +374,10 @@ def solve_shading(
         t_m: deviation of ``S_m`` (paper 0.05).
         matting_eps: Levin's epsilon (1e-5).
         dark_eps: floor of intensities before logs; ``rho`` uses ``I`` unclamped.
+        dark_level: with ``clip_level``, the pixel confidence of ``S_l``
+            (:func:`~torchiid.priors.shading_terms.pixel_confidence`): dark and clipped
+            pixels get smooth shading instead of noise. Both 0 (default here): off.
+        clip_level: see ``dark_level``.
         base_sigma: Gaussian sigma (px) of the default base image.
         lle_k: LLE neighbours (10).
         lle_reg: LLE Gram regulariser (1e-3).
@@ -387,8 +413,8 @@ def solve_shading(
         image, patch_centers=patch_centers, patch_features=patch_features,
         similarity=similarity, base_image=base_image, mask=mask, lambda_g=lambda_g,
         lambda_m=lambda_m, lambda_l=lambda_l, use_sc=use_sc, use_sp=use_sp, t_c=t_c, t_b=t_b,
-        t_m=t_m, matting_eps=matting_eps, dark_eps=dark_eps, base_sigma=base_sigma,
-        lle_k=lle_k, lle_reg=lle_reg, lle_neighbours=lle_neighbours, seed=seed, cache=cache,
+        t_m=t_m, matting_eps=matting_eps, dark_eps=dark_eps, dark_level=dark_level,
+        clip_level=clip_level, base_sigma=base_sigma, lle_k=lle_k, lle_reg=lle_reg, lle_neighbours=lle_neighbours, seed=seed, cache=cache,
     )  # fmt: skip
     image = image.contiguous()
     b, _, h, w = image.shape
@@ -418,7 +444,8 @@ def solve_shading(
             similarity=coarse["similarity"], base_image=coarse["base"], mask=coarse["mask"],
             lambda_g=lambda_g, lambda_m=lambda_m, lambda_l=lambda_l, use_sc=use_sc,
             use_sp=use_sp, t_c=t_c, t_b=t_b, t_m=t_m, matting_eps=matting_eps,
-            dark_eps=dark_eps, base_sigma=base_sigma / 2, lle_k=lle_k, lle_reg=lle_reg,
+            dark_eps=dark_eps, dark_level=dark_level, clip_level=clip_level,
+            base_sigma=base_sigma / 2, lle_k=lle_k, lle_reg=lle_reg,
             lle_neighbours=lle_neighbours, seed=seed, anchor=anchor, tol=tol,
             max_iter=max_iter if coarse_max_iter is None else coarse_max_iter, warn=False,
             levels=levels - 1, coarse_max_iter=coarse_max_iter,
@@ -445,7 +472,9 @@ def solve_shading(
             stacklevel=2,
         )
     logger.debug("shading solve: %d iterations, residual %s", res.iterations, res.residual)
-    shading = torch.exp(s)
+    # where the shading underflows (a solve pulled by dark pixels) rho = I / sigma would
+    # overflow; sigma >= dark_eps^2 keeps rho finite (<= 1 / dark_eps^2 for I <= 1)
+    shading = torch.exp(s).clamp_min(dark_eps * dark_eps)
     reflectance = image / shading
     names = tuple(k for k in times if k not in ("solve", "coarse"))
     diagnostics = ShadingDiagnostics(
