@@ -176,8 +176,9 @@ def test_cuda_request_without_cuda_is_a_clear_error(photos, tmp_path, capsys):
 
 
 def _srgb_decode(a):
-    from torchiid.io import srgb_to_linear
     import torch
+
+    from torchiid.io import srgb_to_linear
 
     x = torch.from_numpy(a.astype(np.float32) / 255)
     return srgb_to_linear(x).numpy()
@@ -190,7 +191,9 @@ def test_output_files_keep_the_convention_users_rely_on(tmp_path):
     from torchiid.io import load_image, read_exr
 
     src = tmp_path / "coffee.png"
-    cv2.imwrite(str(src), cv2.resize(data.coffee(), (180, 120), interpolation=cv2.INTER_AREA)[..., ::-1])
+    cv2.imwrite(
+        str(src), cv2.resize(data.coffee(), (180, 120), interpolation=cv2.INTER_AREA)[..., ::-1]
+    )
     out = tmp_path / "out"
     argv = ["decompose", str(src), "-o", str(out), "--save-confidence", "--iterations", "2"]
     assert main([*argv, "--no-progress"]) == 0

@@ -90,10 +90,18 @@ def _edge_band(labels: torch.Tensor, width: int = 2) -> torch.Tensor:
     return F.max_pool2d(edge.float(), 2 * width + 1, stride=1, padding=width) > 0
 
 
-def _log_error(est: torch.Tensor, true: torch.Tensor, where: torch.Tensor) -> float:
-    """Mean |log est - log true| over ``where`` after the best global log shift."""
-    d = (est.clamp_min(1e-6).log() - true.log())[where]
+def _log_gap(est: torch.Tensor, ref: torch.Tensor, where: torch.Tensor) -> float:
+    """Mean |log est - log ref| over ``where`` after the best global log shift."""
+    d = (est.log() - ref.log())[where]
     return float((d - d.median()).abs().mean())
+
+
+def _log_gradient(s: torch.Tensor, where: torch.Tensor) -> float:
+    """Mean |horizontal| + |vertical| step of log s over ``where``."""
+    ls = s.log()
+    gx = (ls[..., :, 1:] - ls[..., :, :-1]).abs()[where[..., :, 1:]]
+    gy = (ls[..., 1:, :] - ls[..., :-1, :]).abs()[where[..., 1:, :]]
+    return float(gx.mean() + gy.mean())
 
 
 def test_working_resolution_matches_full_resolution_without_halos():
@@ -104,22 +112,26 @@ def test_working_resolution_matches_full_resolution_without_halos():
     assert work.working_size == (384, 512) and full.working_size == (768, 1024)
     assert work.shading.shape == (1, 1, 768, 1024)
 
-    def lmse(out):
-        return float(local_mse(s.shading, out.shading)) + float(
-            local_mse(s.reflectance.mean(1, keepdim=True), out.reflectance.mean(1, keepdim=True))
-        )
+    def lmse(shading, refl):
+        gray = refl.mean(1, keepdim=True)
+        return float(local_mse(s.shading, shading) + local_mse(s.reflectance.mean(1, True), gray))
 
-    assert lmse(work) <= 1.1 * lmse(full)
-    # no halo: along the reflectance edges the shading error of the working-resolution result
-    # stays at the full-resolution solve's level, and far below plain bilinear upsampling's
-    band = _edge_band(s.labels)
+    # measured: full 0.00126, working resolution 0.00124
+    assert lmse(work.shading, work.reflectance) <= 1.1 * lmse(full.shading, full.reflectance)
+    # halo: the shading near the reflectance edges departs from the full-resolution solve
+    # more than elsewhere. Plain bilinear upsampling of the same low-resolution solve is the
+    # reference that has halos (measured excess 0.017 against the guided 0.007)
+    band = _edge_band(s.labels, width=1)
     low = decompose(F.interpolate(s.image, size=(384, 512), mode="area"), p.replace(max_side=0))
     bilinear = F.interpolate(low.shading, size=(768, 1024), mode="bilinear", align_corners=False)
-    e_work = _log_error(work.shading, s.shading, band)
-    e_full = _log_error(full.shading, s.shading, band)
-    e_bilinear = _log_error(bilinear, s.shading, band)
-    assert e_work <= 1.25 * e_full + 0.005
-    assert e_work < 0.5 * e_bilinear
+
+    def excess(x):
+        return _log_gap(x, full.shading, band) - _log_gap(x, full.shading, ~band)
+
+    assert excess(work.shading) < 0.6 * excess(bilinear)
+    # and no sharper shading edges along the reflectance edges than the full-resolution solve
+    # has (measured 0.0386 against 0.0407)
+    assert _log_gradient(work.shading, band) <= 1.1 * _log_gradient(full.shading, band)
 
 
 # ----------------------------------------------------------------------------- dark pixels

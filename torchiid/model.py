@@ -116,8 +116,7 @@ def _gray_shading(image: torch.Tensor, refl: torch.Tensor) -> torch.Tensor:
 def _final_shading(
     img: torch.Tensor, refl: torch.Tensor, sigma: torch.Tensor, params: Parameters
 ) -> torch.Tensor:
-    """The working-resolution shading of the output: Stage 2's ``I / R``, except where the
-    image carries no information.
+    """The working-resolution shading of the output: Stage 2's ``I / R`` where it is informed.
 
     In a dark pixel ``I ≈ 0``, so ``I / R`` is ≈ 0 whatever the light there: the shading
     would show every black object as an unlit hole. Where the pixel confidence ``c``
@@ -480,9 +479,7 @@ def _normalised_iteration(
     guide = _log_luminance(img, params.dark_eps)
     st1 = full_resolution_layers(img, it.sigma, guide, msk, params)
     st2 = full_resolution_layers(img, it.S, guide, msk, params)
-    return IterationLayers(
-        sigma=st1.shading, rho=st1.reflectance, R=st2.reflectance, S=st2.shading
-    )
+    return IterationLayers(sigma=st1.shading, rho=st1.reflectance, R=st2.reflectance, S=st2.shading)
 
 
 class IntrinsicDecomposer(nn.Module):

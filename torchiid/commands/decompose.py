@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import sys
 import time
 from pathlib import Path
@@ -53,9 +52,7 @@ def params_from_args(args: argparse.Namespace) -> Parameters:
 
 def output_names(stem: str, args: argparse.Namespace, params: Parameters) -> list[str]:
     """Every file name ``decompose`` writes for an input of this stem."""
-    names = layer_file_names(
-        stem, save_npy=args.save_npy, save_confidence=args.save_confidence
-    )
+    names = layer_file_names(stem, save_npy=args.save_npy, save_confidence=args.save_confidence)
     if args.save_iterations and args.method == "semantic":
         for k in range(1, params.iterations + 1):
             names += [f"{stem}-iter{k}-{layer}.png" for layer in ("sigma", "rho", "R", "S")]

@@ -6,6 +6,7 @@ from torchiid.io.image import (
     load_image,
     load_mask,
     read_exr,
+    save_codes,
     save_image,
     save_uint8,
     srgb_to_linear,
@@ -19,5 +20,6 @@ __all__ = [
     "read_exr",
     "save_image",
     "save_uint8",
+    "save_codes",
     "srgb_to_linear",
 ]

@@ -26,12 +26,12 @@ Reading (:func:`load_image`, :func:`load_mask`, :func:`read_exr`):
   the file and the problem: missing, unreadable, empty, not an image, truncated or corrupt,
   zero size, smaller than ``min_side`` pixels, or containing NaN / infinity.
 
-Writing (:func:`save_image`, :func:`save_uint8`) is atomic: the data go to a temporary file in
-the target folder, which is renamed over the target only when complete, so an output is never
-half-written. The file gets the permissions of a normally created file (``0o666`` less the
-process umask). Encodings: 8-bit sRGB, 16-bit sRGB and 16-bit linear (PNG or TIFF, through
-OpenCV), float32 ``.npy``, and float32 OpenEXR (ZIP compression, channel ``Y`` or ``R``, ``G``,
-``B``, optional extra header attributes).
+Writing (:func:`save_image`, :func:`save_uint8`, :func:`save_codes`) is atomic: the data go
+to a temporary file in the target folder, which is renamed over the target only when complete,
+so an output is never half-written. The file gets the permissions of a normally created file
+(``0o666`` less the process umask). Encodings: 8-bit sRGB, 16-bit sRGB and 16-bit linear (PNG
+or TIFF, through OpenCV), float32 ``.npy``, and float32 OpenEXR (ZIP compression, channel
+``Y`` or ``R``, ``G``, ``B``, optional extra header attributes).
 """
 
 from __future__ import annotations
@@ -67,6 +67,7 @@ __all__ = [
     "read_exr",
     "save_image",
     "save_uint8",
+    "save_codes",
     "srgb_to_linear",
     "linear_to_srgb",
 ]
@@ -812,10 +813,24 @@ def save_image(
 def save_uint8(path: str | os.PathLike, rgb: np.ndarray) -> Path:
     """Write an ``(H, W, 3)`` or ``(H, W)`` uint8 picture (already sRGB) atomically as is."""
     rgb = np.asarray(rgb)
-    if rgb.dtype != np.uint8 or rgb.ndim not in (2, 3):
+    if rgb.dtype != np.uint8:
+        raise ImageError(f"save_uint8 takes an (H, W[, 3]) uint8 array, got {rgb.dtype}")
+    return save_codes(path, rgb)
+
+
+def save_codes(path: str | os.PathLike, rgb: np.ndarray) -> Path:
+    """Write an ``(H, W, 3)`` RGB or ``(H, W)`` gray uint8 / uint16 array atomically as is.
+
+    The codes are written unchanged (no colour encoding), e.g. a 16-bit linear PNG whose
+    codes the caller computed.
+    """
+    rgb = np.asarray(rgb)
+    if rgb.dtype not in (np.uint8, np.uint16) or rgb.ndim not in (2, 3):
         raise ImageError(
-            f"save_uint8 takes an (H, W[, 3]) uint8 array, got {rgb.dtype} {rgb.shape}"
+            f"save_codes takes an (H, W[, 3]) uint8 or uint16 array, got {rgb.dtype} {rgb.shape}"
         )
+    if rgb.ndim == 3 and rgb.shape[2] != 3:
+        raise ImageError(f"save_codes takes 3 colour channels, got {rgb.shape[2]}")
     payload = np.ascontiguousarray(rgb[..., ::-1]) if rgb.ndim == 3 else rgb
     path = Path(path)
     _atomic_write(path, payload)

@@ -53,7 +53,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from torchiid.io.image import _atomic_write, save_image
+from torchiid.io.image import save_codes, save_image
 from torchiid.resample import row_bands
 
 __all__ = ["LayerFiles", "layer_file_names", "write_layers", "srgb8_from_linear"]
@@ -99,10 +99,6 @@ def _linear16(x: torch.Tensor) -> np.ndarray:
 def srgb8_from_linear(x: torch.Tensor) -> np.ndarray:
     """``(C, H, W)`` linear values (clipped to [0, 1]) as an ``(H, W, C)`` uint8 sRGB array."""
     return _srgb8_lut()[_linear16(x)]
-
-
-def _bgr(a: np.ndarray) -> np.ndarray:
-    return a[..., ::-1] if a.ndim == 3 and a.shape[2] == 3 else a
 
 
 def layer_file_names(stem: str, *, save_npy: bool = False, save_confidence: bool = False):
@@ -194,7 +190,7 @@ def write_layers(
         files[key] = out / f"{stem}-{key}"
         return files[key]
 
-    _atomic_write(name("reflectance-linear16.png"), _bgr(r16))
+    save_codes(name("reflectance-linear16.png"), r16)
     save_image(
         name("shading.exr"),
         s_exr,
@@ -203,21 +199,21 @@ def write_layers(
     )
     r8 = _srgb8_lut()[r16]
     del r16
-    _atomic_write(name("reflectance.png"), np.ascontiguousarray(_bgr(r8)))
-    _atomic_write(name("shading.png"), s8)
-    gap = 4
-    panels = [_preview_panel(image.detach().to("cpu", torch.float32))]
-    panels.append(_preview_panel(reflectance.detach().to("cpu", torch.float32)))
-    panels.append(_preview_panel(shading.detach().to("cpu", torch.float32) / white).expand(3, -1, -1))
-    sep = torch.ones(3, panels[0].shape[1], gap)
+    save_codes(name("reflectance.png"), r8)
+    save_codes(name("shading.png"), s8)
+    panels = [
+        _preview_panel(x.detach().to("cpu", torch.float32)).expand(3, -1, -1)
+        for x in (image, reflectance, shading / white)
+    ]
+    sep = torch.ones(3, panels[0].shape[1], 4)
     prev = torch.cat([panels[0], sep, panels[1], sep, panels[2]], dim=2)
-    _atomic_write(name("preview.png"), np.ascontiguousarray(_bgr(srgb8_from_linear(prev))))
+    save_codes(name("preview.png"), srgb8_from_linear(prev))
     if save_npy:
         save_image(name("reflectance.npy"), reflectance, "npy")
         save_image(name("shading.npy"), shading, "npy")
     if confidence is not None:
         conf = (confidence.detach().to("cpu", torch.float32)[0] * 255).round_().to(torch.uint8)
-        _atomic_write(name("confidence.png"), conf.numpy())
+        save_codes(name("confidence.png"), conf.numpy())
     record = {
         "size": [big_w, big_h],
         "shading_white": white,
@@ -229,9 +225,8 @@ def write_layers(
         ),
         **(dict(info) if info else {}),
         "files": {
-            f"{stem}-{k}": DESCRIPTIONS[k] for k in [*files, "info.json"] + (
-                ["params.json"] if params_json is not None else []
-            )
+            f"{stem}-{k}": DESCRIPTIONS[k]
+            for k in [*files, "info.json"] + (["params.json"] if params_json is not None else [])
         },
     }
     _write_json(name("info.json"), record)

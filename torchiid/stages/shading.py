@@ -414,7 +414,8 @@ def solve_shading(
         similarity=similarity, base_image=base_image, mask=mask, lambda_g=lambda_g,
         lambda_m=lambda_m, lambda_l=lambda_l, use_sc=use_sc, use_sp=use_sp, t_c=t_c, t_b=t_b,
         t_m=t_m, matting_eps=matting_eps, dark_eps=dark_eps, dark_level=dark_level,
-        clip_level=clip_level, base_sigma=base_sigma, lle_k=lle_k, lle_reg=lle_reg, lle_neighbours=lle_neighbours, seed=seed, cache=cache,
+        clip_level=clip_level, base_sigma=base_sigma, lle_k=lle_k, lle_reg=lle_reg,
+        lle_neighbours=lle_neighbours, seed=seed, cache=cache,
     )  # fmt: skip
     image = image.contiguous()
     b, _, h, w = image.shape
