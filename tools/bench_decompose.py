@@ -60,7 +60,9 @@ def _worker(args: argparse.Namespace) -> None:
     x = _image(args.image, args.size).to(dev)
     base = Parameters.preset(args.preset)
     params = Parameters.from_json(args.params, base=base) if args.params else base
-    params = params.replace(iterations=args.iterations)
+    # the method at the benchmark's size (tools/bench_photo_sizes.py measures the working
+    # resolution path that photos take)
+    params = params.replace(iterations=args.iterations, max_side=args.max_side)
 
     def sync() -> None:
         if dev.type == "cuda":
@@ -98,6 +100,9 @@ def main() -> None:
     ap.add_argument("--image", default="chelsea")
     ap.add_argument("--params", default="", help="JSON parameter file over the preset")
     ap.add_argument("--preset", default="default", help="parameter preset (default, paper)")
+    ap.add_argument(
+        "--max-side", type=int, default=0, help="working resolution (default 0: the size itself)"
+    )
     ap.add_argument(
         "--per-iteration",
         action="store_true",
@@ -142,6 +147,8 @@ def main() -> None:
             args.params,
             "--preset",
             args.preset,
+            "--max-side",
+            str(args.max_side),
         ]
         proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
         if proc.returncode != 0:

@@ -1,4 +1,8 @@
-"""Reading and writing images: one loader that knows bit depth and colour encoding."""
+"""Reading and writing images, and writing a decomposition's files.
+
+One loader knows bit depth, colour encoding and EXIF orientation (:mod:`torchiid.io.image`);
+:mod:`torchiid.io.layers` writes what ``torchiid decompose`` leaves in its output folder.
+"""
 
 from torchiid.io.image import (
     LoadedImage,
@@ -11,6 +15,7 @@ from torchiid.io.image import (
     save_uint8,
     srgb_to_linear,
 )
+from torchiid.io.layers import layer_file_names, write_layers
 
 __all__ = [
     "LoadedImage",
@@ -22,4 +27,6 @@ __all__ = [
     "save_uint8",
     "save_codes",
     "srgb_to_linear",
+    "layer_file_names",
+    "write_layers",
 ]

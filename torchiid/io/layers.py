@@ -101,7 +101,9 @@ def srgb8_from_linear(x: torch.Tensor) -> np.ndarray:
     return _srgb8_lut()[_linear16(x)]
 
 
-def layer_file_names(stem: str, *, save_npy: bool = False, save_confidence: bool = False):
+def layer_file_names(
+    stem: str, *, save_npy: bool = False, save_confidence: bool = False
+) -> list[str]:
     """Every file name :func:`write_layers` writes for ``stem``, in writing order."""
     keys = [
         "reflectance-linear16.png",
@@ -218,8 +220,8 @@ def write_layers(
         "size": [big_w, big_h],
         "shading_white": white,
         "convention": (
-            "linear R*S = I; R is an albedo in [0, 1] whose 99.9th percentile of the brightest "
-            "channel is 1 (pixels above moved their excess into S); S may exceed 1. "
+            "linear R*S = I; R is an albedo in [0, 1] whose albedo_quantile quantile of the "
+            "brightest channel is 1 (pixels above moved their excess into S); S may exceed 1. "
             "(R*shading_white, S/shading_white) is the convention where the shading's 99th "
             "percentile is 1."
         ),
