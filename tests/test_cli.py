@@ -224,11 +224,11 @@ def test_output_files_keep_the_convention_users_rely_on(tmp_path):
     prev = cv2.imread(str(out / "coffee-preview.png"), cv2.IMREAD_UNCHANGED)
     assert prev.shape == (120, 3 * 180 + 8, 3)
     # eval --results scores the exact files when present
-    from torchiid.commands.eval import _load_layer
+    from torchiid.eval.results import load_layer
 
-    refl = _load_layer(out, "coffee", "reflectance")
+    refl = load_layer(out, "coffee", "reflectance")
     assert torch.allclose(refl[0].permute(1, 2, 0), torch.from_numpy(r).float(), atol=1e-6)
-    shad = _load_layer(out, "coffee", "shading")
+    shad = load_layer(out, "coffee", "shading")
     assert torch.allclose(shad[0, 0], torch.from_numpy(s), rtol=1e-6)
 
 
@@ -244,3 +244,32 @@ def test_large_photos_get_a_downscaled_preview_and_full_size_layers(tmp_path):
     assert refl.shape == (1000, 1500, 3)
     prev = cv2.imread(str(out / "wide-preview.png"), cv2.IMREAD_UNCHANGED)
     assert prev.shape == (683, 3 * 1024 + 8, 3)
+
+
+def test_export_onnx_takes_output_like_the_other_subcommands(tmp_path, monkeypatch, capsys):
+    from pathlib import Path
+
+    import torchiid.features.onnx_backend as onnx_backend
+    from torchiid.cli import build_parser
+
+    parser = build_parser()
+    for flag in ("-o", "--output"):
+        assert parser.parse_args(["export-onnx", flag, "models"]).output == Path("models")
+    assert parser.parse_args(["export-onnx"]).output is None
+    with pytest.raises(SystemExit):
+        parser.parse_args(["export-onnx", "--output-dir", "models"])
+    capsys.readouterr()
+    written = []
+    monkeypatch.setattr(onnx_backend, "export_to_dir", lambda d: written.append(d) or d / "m.onnx")
+    assert main(["export-onnx", "-o", str(tmp_path)]) == 0
+    assert written == [tmp_path]
+    assert f"wrote {tmp_path / 'm.onnx'}" in capsys.readouterr().out
+
+
+def test_library_functions_stay_importable_from_the_cli():
+    from torchiid import cli
+    from torchiid.core.device import resolve_device
+    from torchiid.io.inputs import IMAGE_SUFFIXES, collect_inputs
+
+    assert cli.resolve_device is resolve_device
+    assert cli.collect_inputs is collect_inputs and cli.IMAGE_SUFFIXES is IMAGE_SUFFIXES

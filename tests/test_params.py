@@ -22,7 +22,8 @@ def test_default_preset_differs_from_paper_only_where_tuned():
         "bregman_iter",
         "bregman_cg_iter",
     }
-    assert Parameters.preset("paper") == Parameters()
+    # the no-argument object is what decompose() does by default
+    assert Parameters.preset("default") == Parameters()
 
 
 def test_json_roundtrip_and_unknown_keys(tmp_path):
@@ -82,5 +83,33 @@ def test_variants_switch_the_right_priors():
     assert p.variant("v1").use_rm and p.variant("v1").use_rg
     assert p.variant("v4").use_rl and not p.variant("v4").use_rm and not p.variant("v4").use_rg
     assert p.variant("v7") == p
+    # a variant sets every switch: v4 then v7 is v7, not v4
+    assert p.variant("v4").variant("v7") == p.variant("v7") == p
+    assert p.variant("baseline2").variant("v1") == p.variant("v1")
     assert not p.variant("baseline1").stage2 and not p.variant("baseline2").stage1
     assert set(VARIANTS) >= {f"v{i}" for i in range(1, 8)} and "paper" in PRESETS
+
+
+def test_stage_configuration_carries_switches_and_schedule():
+    p = Parameters()
+    sw, rw = p.shading_weights(), p.reflectance_weights()
+    assert (sw.lambda_c, sw.lambda_p, sw.lambda_m, sw.lambda_l) == (0.02, 0.02, 0.02, 2.0)
+    assert (rw.gamma_l, rw.gamma_m, rw.gamma_g, rw.gamma_a) == (20.0, 20.0, 2.0, 1.0)
+    # switches are zero weights
+    v1 = p.variant("v1").shading_weights()
+    assert (v1.lambda_c, v1.lambda_p, v1.lambda_m) == (0, 0, 0) and v1.lambda_l == 2.0
+    assert not p.variant("baseline2").shading_weights().active
+    assert not p.variant("baseline1").reflectance_weights().active
+    v4 = p.variant("v4").reflectance_weights()
+    assert v4.gamma_l == 20.0 and v4.gamma_m == 0 and v4.gamma_g == 0
+    # the §3.4 schedule: global, mid-level and data x tau, local / tau, per alternation
+    sw3, rw3 = p.shading_weights(3), p.reflectance_weights(3)
+    assert sw3.lambda_c == pytest.approx(0.02 * 1.44) and sw3.lambda_l == pytest.approx(2 / 1.44)
+    assert rw3.gamma_l == pytest.approx(20 / 1.44) and rw3.gamma_a == pytest.approx(1.44)
+    assert sw.step(1.2).step(1.2) == sw3
+    # every solver knob comes from Parameters
+    so, ro = p.replace(anchor=1e-6, coarse_levels=2).shading_options(), p.reflectance_options()
+    assert (so.anchor, so.levels, so.max_iter, so.warm_max_iter) == (1e-6, 2, 100, 30)
+    assert (ro.window, ro.value_scale, ro.max_outer, ro.cg_max_iter) == (11, 255.0, 2, 3)
+    with pytest.raises(ParameterError, match="window must be odd"):
+        Parameters(window=10)

@@ -17,7 +17,8 @@ import time
 
 import torch
 
-from torchiid.priors.representatives import felzenszwalb_segments
+from torchiid.features.segmentation import felzenszwalb_segments
+from torchiid.stages.config import ReflectanceOptions, ReflectanceProblem, ReflectanceWeights
 from torchiid.stages.reflectance import solve_reflectance
 from torchiid.synthetic import mondrian
 
@@ -48,11 +49,15 @@ def main() -> None:
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats()
+    problem = ReflectanceProblem(rho, s.image, gpca=gpca, segments=segments)
+    options = ReflectanceOptions(
+        max_outer=args.max_outer, cg_max_iter=args.cg_max_iter, window=args.window
+    )
     variants = [
-        ("A", dict(gamma_m=0, gamma_g=0)),
-        ("A+B merged", dict(gamma_g=0)),
-        ("A+B+C merged", dict()),
-        ("A+B+C separate", dict(merge_stencil_terms=False)),
+        ("A", ReflectanceWeights(gamma_m=0, gamma_g=0), options),
+        ("A+B merged", ReflectanceWeights(gamma_g=0), options),
+        ("A+B+C merged", ReflectanceWeights(), options),
+        ("A+B+C separate", ReflectanceWeights(), options.replace(merge_stencil_terms=False)),
     ]
     print(
         f"image {args.width}x{args.height}, device {dev}, threads {torch.get_num_threads()}, "
@@ -66,20 +71,11 @@ def main() -> None:
     )
     print(hdr)
     print("-" * len(hdr))
-    for name, kw in variants:
+    for name, weights, opts in variants:
         best = None
         for _ in range(args.repeat):
             t0 = time.perf_counter()
-            r = solve_reflectance(
-                rho,
-                s.image,
-                gpca=gpca,
-                segments=segments,
-                max_outer=args.max_outer,
-                cg_max_iter=args.cg_max_iter,
-                window=args.window,
-                **kw,
-            )
+            r = solve_reflectance(problem, weights, opts)
             if dev.type == "cuda":
                 torch.cuda.synchronize()
             total = time.perf_counter() - t0

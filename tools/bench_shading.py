@@ -19,6 +19,7 @@ import torch
 from torchiid.core.exceptions import ConvergenceWarning
 from torchiid.priors.lle import patch_rgb_features
 from torchiid.priors.shading_terms import shading_stencil
+from torchiid.stages.config import ShadingOptions, ShadingProblem, ShadingWeights
 from torchiid.stages.shading import solve_shading
 from torchiid.synthetic import mondrian
 
@@ -33,7 +34,7 @@ def inputs(width: int, device: str):
     ys, xs = torch.arange(15, h, 30, device=device), torch.arange(15, w, 30, device=device)
     ctr = torch.stack(torch.meshgrid(ys, xs, indexing="ij"), -1).reshape(-1, 2)
     feats = patch_rgb_features(syn.image, ctr, patch_size=60)  # strategy p1 features
-    return syn, dict(patch_centers=ctr, patch_features=feats, similarity=sim)
+    return syn, ShadingProblem(syn.image, patch_centers=ctr, patch_features=feats, similarity=sim)
 
 
 def main() -> None:
@@ -54,13 +55,14 @@ def main() -> None:
     )
     print(f"threads={args.threads} levels={args.levels} tol={args.tol} max_iter={args.max_iter}")
     print(head)
+    weights = ShadingWeights()  # the paper's: all four priors on
+    options = ShadingOptions(tol=args.tol, max_iter=args.max_iter, levels=args.levels)
     for width in args.sizes:
-        syn, kw = inputs(width, args.device)
-        solve_shading(syn.image[..., :32, :32], tol=1e-2, max_iter=5)  # warm-up
+        syn, problem = inputs(width, args.device)
+        warm_up = ShadingProblem(syn.image[..., :32, :32])
+        solve_shading(warm_up, weights, ShadingOptions(tol=1e-2, max_iter=5))
         t0 = time.perf_counter()
-        res = solve_shading(
-            syn.image, **kw, tol=args.tol, max_iter=args.max_iter, levels=args.levels
-        )
+        res = solve_shading(problem, weights, options)
         total = time.perf_counter() - t0
         d = res.diagnostics
         s, gt = res.log_shading.flatten(), syn.shading.log().flatten()

@@ -41,16 +41,16 @@ def main() -> None:
         dt = float("inf")
         for _ in range(max(args.repeats, 1)):
             t0 = time.perf_counter()
-            r, sh = color_retinex(img, mask, args.threshold_gray, args.threshold_color)
+            out = color_retinex(img, mask, args.threshold_gray, args.threshold_color)
             dt = min(dt, time.perf_counter() - t0)
-        gt = (s.shading[None], s.reflectance[None])
+        gt = (s.reflectance[None], s.shading[None])
         rows.append(
             (
                 s.id,
                 f"{img.shape[-2]}x{img.shape[-1]}",
-                float(mit_lmse(*gt, sh, r, mask)),
-                float(mit_lmse(*gt, ones, gray, mask)),
+                float(mit_lmse(*gt, out.reflectance, out.shading, mask)),
                 float(mit_lmse(*gt, gray, ones, mask)),
+                float(mit_lmse(*gt, ones, gray, mask)),
                 dt,
             )
         )

@@ -15,11 +15,15 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from torchiid.commands.decompose import add_parameter_options
+from torchiid.core.device import resolve_device as resolve_device
 from torchiid.core.exceptions import TorchiidError
+from torchiid.io.inputs import IMAGE_SUFFIXES as IMAGE_SUFFIXES
+from torchiid.io.inputs import collect_inputs as collect_inputs
 
 __all__ = ["main", "build_parser"]
 
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".npy"}
+# ``resolve_device`` (torchiid.core.device), ``collect_inputs`` and ``IMAGE_SUFFIXES``
+# (torchiid.io.inputs) are library functions; they stay importable from here for old callers.
 log = logging.getLogger("torchiid")
 
 
@@ -105,7 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     e.add_argument(
         "-o",
-        "--output-dir",
+        "--output",
         type=Path,
         default=None,
         help="where to write (default: the cache used by the library)",
@@ -115,35 +119,6 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_eval_parser(sub)
     return parser
-
-
-def resolve_device(name: str):
-    """``auto`` → CUDA when available, else CPU; ``cuda`` without CUDA is an error."""
-    import torch
-
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise TorchiidError("--device cuda was asked for, but no CUDA device is available")
-    return torch.device(name)
-
-
-def collect_inputs(inputs: Sequence[Path]) -> list[Path]:
-    """Expand directories into their image files (sorted); keep files as given."""
-    out: list[Path] = []
-    for p in inputs:
-        if p.is_dir():
-            found = sorted(
-                q for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_SUFFIXES
-            )
-            if not found:
-                raise TorchiidError(
-                    f"{p}: directory holds no image files ({', '.join(sorted(IMAGE_SUFFIXES))})"
-                )
-            out.extend(found)
-        else:
-            out.append(p)
-    return out
 
 
 def _cmd_decompose(args: argparse.Namespace) -> int:
@@ -162,7 +137,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from torchiid.features.onnx_backend import ensure_onnx_model, export_to_dir
 
     t0 = time.perf_counter()
-    path = export_to_dir(args.output_dir) if args.output_dir else ensure_onnx_model()
+    path = export_to_dir(args.output) if args.output else ensure_onnx_model()
     print(f"wrote {path} ({time.perf_counter() - t0:.1f} s)")
     return 0
 

@@ -27,12 +27,15 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
-from torchiid.core.check import check_image, check_shape
+from torchiid.core.check import as_mask, check_image
 from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.features.semantic import SemanticFeatures, semantic_features
 from torchiid.params import Parameters
 from torchiid.priors.shading_terms import pixel_confidence
 from torchiid.resample import GuidedUpsampler, downsample, row_bands, working_size
+from torchiid.stages.config import ReflectanceProblem, ShadingProblem
+from torchiid.stages.reflectance import ReflectanceCache, solve_reflectance
+from torchiid.stages.shading import ShadingSystemCache, solve_shading
 
 __all__ = [
     "Decomposition",
@@ -42,8 +45,6 @@ __all__ = [
     "full_resolution_layers",
     "IntrinsicDecomposer",
 ]
-
-_SHADING_FLOOR = 1e-4
 
 
 @dataclass(frozen=True)
@@ -56,14 +57,14 @@ class IterationLayers:
     Attributes:
         sigma: ``(B, 1, h, w)`` Stage 1 shading ``σ``.
         rho: ``(B, 3, h, w)`` Stage 1 reflectance ``ρ = I / σ``.
-        R: ``(B, 3, h, w)`` Stage 2 reflectance.
-        S: ``(B, 1, h, w)`` Stage 2 shading (gray ``I / R``).
+        reflectance: ``(B, 3, h, w)`` Stage 2 reflectance ``R``.
+        shading: ``(B, 1, h, w)`` Stage 2 shading ``S`` (gray ``I / R``).
     """
 
     sigma: torch.Tensor
     rho: torch.Tensor
-    R: torch.Tensor
-    S: torch.Tensor
+    reflectance: torch.Tensor
+    shading: torch.Tensor
 
 
 @dataclass(frozen=True)
@@ -107,10 +108,10 @@ class Decomposition:
     working_size: tuple[int, int] | None = None
 
 
-def _gray_shading(image: torch.Tensor, refl: torch.Tensor) -> torch.Tensor:
+def _gray_shading(image: torch.Tensor, refl: torch.Tensor, floor: float) -> torch.Tensor:
     """Gray ``S = Σ_c I_c / Σ_c R_c`` (the least-squares-like gray ratio), floored."""
-    s = image.sum(1, keepdim=True) / refl.sum(1, keepdim=True).clamp_min(_SHADING_FLOOR)
-    return s.clamp_min(_SHADING_FLOOR)
+    s = image.sum(1, keepdim=True) / refl.sum(1, keepdim=True).clamp_min(floor)
+    return s.clamp_min(floor)
 
 
 def _final_shading(
@@ -124,13 +125,13 @@ def _final_shading(
     blended toward Stage 1's ``σ``, which the confidence-aware ``S_l`` made a smooth
     continuation of the surroundings there: ``log S = c·log(I / R) + (1 − c)·log σ``.
     """
-    s2 = _gray_shading(img, refl)
+    s2 = _gray_shading(img, refl, params.shading_floor)
     if params.dark_level <= 0 and params.clip_level <= 0:
         return s2
     c = pixel_confidence(img, params.dark_level, params.clip_level)
     if bool((c >= 1).all()):
         return s2
-    log_s = c * s2.log() + (1 - c) * sigma.clamp_min(_SHADING_FLOOR).log()
+    log_s = c * s2.log() + (1 - c) * sigma.clamp_min(params.shading_floor).log()
     return log_s.exp()
 
 
@@ -146,12 +147,7 @@ def _check_inputs(
         image = image[None]
     check_image(image, "image", min_side=params.patch_size)
     if mask is not None:
-        if mask.dim() == 3:
-            mask = mask[None]
-        check_shape(mask, (image.shape[0], 1, image.shape[2], image.shape[3]), "mask")
-        if mask.dtype != torch.bool:
-            raise ShapeError(f"expected a bool mask, got {mask.dtype}; use mask > 0.5")
-        mask = mask.to(image.device)
+        mask = as_mask(mask, image, "mask")
         empty = ~mask.flatten(1).any(1)
         if bool(empty.any()):
             raise ShapeError(f"mask of image {int(empty.nonzero()[0])} is empty (no pixel inside)")
@@ -176,8 +172,9 @@ def decompose(
             ``[0, 1]``), sides of at least ``params.patch_size`` pixels. Images of a batch are
             solved together as one block-diagonal system.
         params: :class:`~torchiid.params.Parameters` (default: the ``default`` preset).
-        mask: optional ``(B, 1, H, W)`` bool; every prior is restricted to the pixels inside
-            and the outside is returned as 0.
+        mask: optional ``(B, 1, H, W)`` (or ``(H, W)``, ``(B, H, W)``) tensor, bool or numbers:
+            nonzero is inside, as everywhere in torchiid (:func:`~torchiid.core.check.as_mask`);
+            every prior is restricted to the pixels inside and the outside is returned as 0.
         features: precomputed Stage 0 features (at the working resolution), e.g. to run
             several parameter sets on one image.
         return_iterations: keep every alternation's ``σ, ρ, R, S`` (paper Fig. 5).
@@ -204,9 +201,6 @@ def decompose(
         >>> bool(out.reflectance.max() <= 1)
         True
     """
-    from torchiid.stages.reflectance import ReflectanceCache, solve_reflectance
-    from torchiid.stages.shading import ShadingSystemCache, solve_shading
-
     params = params if params is not None else Parameters.preset("default")
     t_start = time.perf_counter()
     image, mask = _check_inputs(image, mask, params)
@@ -235,9 +229,8 @@ def decompose(
     if progress is not None:
         progress("features", 0, params.iterations)
 
-    lam_g, lam_m, lam_l = params.lambda_g, params.lambda_m, params.lambda_l
-    gam_l, gam_m, gam_g, gam_a = params.gamma_l, params.gamma_m, params.gamma_g, params.gamma_a
-    use_g = params.use_sc or params.use_sp
+    shading_w, refl_w = params.shading_weights(), params.reflectance_weights()
+    shading_opt, refl_opt = params.shading_options(), params.reflectance_options()
     s_prev = r_prev = None
     sigma = rho = refl = None
     shading_cache = ShadingSystemCache()  # S_c, S_m, S_l are built once per image
@@ -245,82 +238,43 @@ def decompose(
     layers: list[IterationLayers] = []
     for k in range(1, params.iterations + 1):
         t0 = time.perf_counter()
-        if params.stage1:
-            sh = solve_shading(
-                img,
-                patch_centers=features.patch_centers if params.use_sc else None,
-                patch_features=features.patch_features if params.use_sc else None,
-                similarity=features.similarity if params.use_sm else None,
-                base_image=r_prev if params.use_sp else None,
+        if shading_w.active:
+            problem = ShadingProblem(
+                image=img,
+                patch_centers=features.patch_centers,
+                patch_features=features.patch_features,
+                similarity=features.similarity,
+                base_image=r_prev,
                 mask=msk,
-                lambda_g=lam_g if use_g else 0.0,
-                lambda_m=lam_m if params.use_sm else 0.0,
-                lambda_l=lam_l if params.use_sl else 0.0,
-                use_sc=params.use_sc and features.patch_features is not None,
-                use_sp=params.use_sp,
-                t_c=params.t_c,
-                t_b=params.t_b,
-                t_m=params.t_m,
-                matting_eps=params.matting_eps,
-                dark_eps=params.dark_eps,
-                dark_level=params.dark_level,
-                clip_level=params.clip_level,
-                lle_k=params.lle_k,
-                lle_reg=params.lle_reg,
-                lle_neighbours=params.lle_neighbours,
-                seed=params.seed,
-                x0=s_prev,
-                tol=params.cg_tol,
-                max_iter=(
-                    (params.warm_cg_max_iter or params.cg_max_iter)
-                    if s_prev is not None
-                    else params.cg_max_iter
-                ),
-                warn=False,
-                levels=1 if s_prev is not None else 3,
-                cache=shading_cache,
             )
+            sh = solve_shading(problem, shading_w, shading_opt, x0=s_prev, cache=shading_cache)
             s_prev = sh.log_shading
             sigma, rho = sh.shading, sh.reflectance
         else:
             # baseline 2/3: no shading stage; Stage 2 flattens its own previous result
             rho = img if r_prev is None else r_prev
-            sigma = _gray_shading(img, rho)
+            sigma = _gray_shading(img, rho, params.shading_floor)
         times[f"shading {k}"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        if params.stage2:
-            rr = solve_reflectance(
-                rho.clamp_min(0),
-                img,
-                gpca=features.gpca if params.use_rm else None,
-                segments=features.segments if params.use_rg else None,
+        if refl_w.active:
+            problem = ReflectanceProblem(
+                rho=rho.clamp_min(0),
+                image=img,
+                gpca=features.gpca,
+                segments=features.segments,
                 mask=msk,
-                gamma_l=gam_l if params.use_rl else 0.0,
-                gamma_m=gam_m if params.use_rm else 0.0,
-                gamma_g=gam_g if params.use_rg else 0.0,
-                gamma_a=gam_a,
-                theta=params.theta,
-                t=params.t,
-                colour_weights=params.colour_weights,
-                z0=r_prev,
-                tol=params.bregman_tol,
-                max_outer=params.bregman_iter,
-                cg_max_iter=params.bregman_cg_iter,
-                track_objective=False,
-                cache=reflectance_cache,
             )
+            rr = solve_reflectance(problem, refl_w, refl_opt, z0=r_prev, cache=reflectance_cache)
             refl = rr.reflectance
         else:
             refl = rho
         times[f"reflectance {k}"] = time.perf_counter() - t0
         r_prev = refl
         if return_iterations:
-            layers.append(IterationLayers(sigma=sigma, rho=rho, R=refl, S=_gray_shading(img, refl)))
+            shading = _gray_shading(img, refl, params.shading_floor)
+            layers.append(IterationLayers(sigma, rho, refl, shading))
         # §3.4: strengthen mid-level, global and data terms, weaken local ones
-        lam_g, lam_m, gam_m, gam_g, gam_a = (
-            x * params.tau for x in (lam_g, lam_m, gam_m, gam_g, gam_a)
-        )
-        lam_l, gam_l = lam_l / params.tau, gam_l / params.tau
+        shading_w, refl_w = shading_w.step(params.tau), refl_w.step(params.tau)
         if progress is not None:
             progress("iteration", k, params.iterations)
 
@@ -345,7 +299,9 @@ def decompose(
         sigma=None if stage1 is None else back(stage1.shading),
         rho=None if stage1 is None else back(stage1.reflectance),
         iterations=tuple(
-            IterationLayers(*(back(getattr(it, n)) for n in ("sigma", "rho", "R", "S")))
+            IterationLayers(
+                *(back(getattr(it, n)) for n in ("sigma", "rho", "reflectance", "shading"))
+            )
             for it in layers
         ),
         params=params,
@@ -428,7 +384,7 @@ def full_resolution_layers(
         :class:`FullLayers`.
     """
     b, _, big_h, big_w = image.shape
-    log_low = shading_low.clamp_min(_SHADING_FLOOR).log()
+    log_low = shading_low.clamp_min(params.shading_floor).log()
     shading = image.new_empty(b, 1, big_h, big_w)
     if tuple(log_low.shape[-2:]) == (big_h, big_w):
         torch.exp(log_low, out=shading)
@@ -439,7 +395,7 @@ def full_resolution_layers(
         for rows in row_bands(big_h, big_w):
             band = up.band(rows, _log_luminance(image[:, :, rows], params.dark_eps))
             shading[:, :, rows] = band.exp_()
-    shading.clamp_min_(_SHADING_FLOOR)
+    shading.clamp_min_(params.shading_floor)
     # global scale from a sub-grid (about a megapixel is plenty for a quantile)
     img_s, step = _subsample(image)
     peak_s = (img_s / shading[..., ::step, ::step]).amax(1, keepdim=True)
@@ -478,8 +434,10 @@ def _normalised_iteration(
     """An alternation's layers in the output convention (albedos in [0, 1])."""
     guide = _log_luminance(img, params.dark_eps)
     st1 = full_resolution_layers(img, it.sigma, guide, msk, params)
-    st2 = full_resolution_layers(img, it.S, guide, msk, params)
-    return IterationLayers(sigma=st1.shading, rho=st1.reflectance, R=st2.reflectance, S=st2.shading)
+    st2 = full_resolution_layers(img, it.shading, guide, msk, params)
+    return IterationLayers(
+        sigma=st1.shading, rho=st1.reflectance, reflectance=st2.reflectance, shading=st2.shading
+    )
 
 
 class IntrinsicDecomposer(nn.Module):

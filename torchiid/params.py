@@ -1,10 +1,17 @@
 """Parameters of the method, one frozen dataclass with named presets.
 
-:class:`Parameters` holds every number and switch of the method; ``Parameters.preset("paper")``
-gives the paper's values (Saini & Narayanan, §3.4 and Table 1), :meth:`Parameters.to_json` /
-:meth:`Parameters.from_json` round-trip a parameter file, rejecting unknown keys by name, and
-:meth:`Parameters.variant` switches priors off to build the paper's ablation variants v1–v7
-(Table 3) and baselines 1–3 (§5).
+:class:`Parameters` holds every number and switch of the method. ``Parameters()`` is what
+:func:`torchiid.decompose` does by default (the ``default`` preset); ``Parameters.preset("paper")``
+gives the paper's values with the most thorough solver settings (§3.4 and Table 1).
+:meth:`Parameters.to_json` / :meth:`Parameters.from_json` round-trip a parameter file, rejecting
+unknown keys by name, and :meth:`Parameters.variant` sets every switch of the paper's ablation
+variants v1–v7 (Table 3) and baselines 1–3 (§5).
+
+The stages do not read ``Parameters``: :meth:`Parameters.shading_weights`,
+:meth:`~Parameters.shading_options`, :meth:`~Parameters.reflectance_weights` and
+:meth:`~Parameters.reflectance_options` build their configuration objects
+(:mod:`torchiid.stages.config`) in one place, switches included (a switched-off prior has
+weight 0).
 """
 
 from __future__ import annotations
@@ -17,6 +24,12 @@ from pathlib import Path
 from typing import Any
 
 from torchiid.core.exceptions import ParameterError
+from torchiid.stages.config import (
+    ReflectanceOptions,
+    ReflectanceWeights,
+    ShadingOptions,
+    ShadingWeights,
+)
 
 __all__ = ["Parameters", "PRESETS", "VARIANTS"]
 
@@ -54,11 +67,17 @@ class Parameters:
         clip_level: likewise for pixels with a channel at the ceiling of a low-dynamic-range
             image (linear value >= ``clip_level``, ramping in over the 0.03 below it); images
             with values above 1 have no ceiling. 0 turns it off.
+        base_sigma: Gaussian σ (px) of the matting base image of the first alternation (the
+            smoothed image; later alternations use the previous reflectance).
+        anchor: weight of the gauge-fixing anchor ``α Σ (s_i − t)²``, relative to the mean
+            diagonal of the system (only fixes the free constant; any tiny value gives the
+            same shading).
         cg_tol: relative residual at which the shading PCG stops.
         cg_max_iter: cap on shading PCG iterations (per level of the first, coarse-to-fine
             solve).
         warm_cg_max_iter: cap on the shading PCG of alternations 2..k, which start from the
             previous alternation's shading (0: ``cg_max_iter``).
+        coarse_levels: levels of the first, coarse-to-fine shading solve (1: none).
 
     Stage 2 — reflectance (L1), Eqs. 6–13:
         gamma_l: weight of the local sparsity term ``‖A z‖₁``.
@@ -66,7 +85,11 @@ class Parameters:
         gamma_g: weight of the global sparsity term ``‖C z‖₁``.
         gamma_a: weight of the data term ``‖z − ρ‖²``.
         theta: Split-Bregman penalty θ.
+        value_scale: intensity unit of the gammas and θ (255: the paper's values are for
+            Bi et al.'s 8-bit code; see :mod:`torchiid.stages.reflectance`).
         t: deviation of the reflectance weights ``v_ij`` (Eq. 7).
+        t_g: deviation for ``g̊`` in ``B``'s weights (Eq. 9; 0: ``t``).
+        window: side of the local window of ``A`` and ``B`` (paper: 11).
         colour_weights: scaling of the colour features ``r̄`` of ``v_ij``: ``"bi"`` (default:
             ``(0.5·L/100, a/36.7, b/36.7)``, at ``t = 0.05`` exactly the weight function of Bi
             et al.'s code, whose parameters the paper reuses) or ``"wide"``
@@ -77,6 +100,9 @@ class Parameters:
         bregman_cg_iter: CG iterations of each Split-Bregman ``z`` step (an inexact solve; the
             Bregman updates absorb the error, Goldstein & Osher use one Gauss–Seidel sweep).
         bregman_tol: relative change of ``z`` at which Split-Bregman stops.
+        bregman_cg_tol: relative residual at which each ``z`` step's CG stops.
+        shading_floor: smallest shading value (and floor of ``Σ_c R_c`` in the gray-shading
+            ratio); keeps ``R = I / S`` finite.
 
     Iterations, §3.4:
         iterations: alternations k of Stage 1 and Stage 2 (paper: 5).
@@ -124,20 +150,28 @@ class Parameters:
     dark_eps: float = 1e-4
     dark_level: float = 0.002
     clip_level: float = 0.99
+    base_sigma: float = 1.0
+    anchor: float = 1e-8
     cg_tol: float = 1e-4
-    cg_max_iter: int = 300
-    warm_cg_max_iter: int = 0
+    cg_max_iter: int = 100
+    warm_cg_max_iter: int = 30
+    coarse_levels: int = 3
     # Stage 2
     gamma_l: float = 20.0
     gamma_m: float = 20.0
     gamma_g: float = 2.0
     gamma_a: float = 1.0
     theta: float = 40.0
+    value_scale: float = 255.0
     t: float = 0.05
+    t_g: float = 0.0
+    window: int = 11
     colour_weights: str = "bi"
-    bregman_iter: int = 4
-    bregman_cg_iter: int = 5
+    bregman_iter: int = 2
+    bregman_cg_iter: int = 3
     bregman_tol: float = 1e-3
+    bregman_cg_tol: float = 1e-3
+    shading_floor: float = 1e-4
     # iterations
     iterations: int = 5
     tau: float = 1.2
@@ -205,6 +239,12 @@ class Parameters:
             "segment_scale",
             "guide_radius",
             "guide_eps",
+            "anchor",
+            "coarse_levels",
+            "value_scale",
+            "bregman_cg_tol",
+            "shading_floor",
+            "window",
         ]
         for name in positive:
             if getattr(self, name) <= 0:
@@ -222,6 +262,8 @@ class Parameters:
             "warm_cg_max_iter",
             "dark_level",
             "clip_level",
+            "base_sigma",
+            "t_g",
         ]
         for name in nonneg:
             if getattr(self, name) < 0:
@@ -236,6 +278,8 @@ class Parameters:
                 f"patch_stride ({self.patch_stride}) larger than patch_size ({self.patch_size}) "
                 "leaves pixels uncovered"
             )
+        if self.window % 2 == 0 or self.window < 3:
+            raise ParameterError(f"parameter window must be odd and >= 3, got {self.window}")
         if not (self.stage1 or self.stage2):
             raise ParameterError("at least one of stage1 and stage2 must be on")
 
@@ -260,10 +304,80 @@ class Parameters:
         ``baseline1``: shading smoothness only (Stage 1, no Stage 2); ``baseline2``:
         reflectance sparsity only (Stage 2 on ρ = I); ``baseline3``: flattening as reflectance
         (Stage 2 local term only, on ρ = I).
+
+        Every switch is set (the others of the variant are on), so
+        ``p.variant("v4").variant("v7") == p.variant("v7")``.
         """
         if name not in VARIANTS:
             raise ParameterError(f"unknown variant {name!r}; choose one of {', '.join(VARIANTS)}")
-        return dataclasses.replace(self, **VARIANTS[name])
+        return dataclasses.replace(self, **{**_ALL_ON, **VARIANTS[name]})
+
+    # ------------------------------------------------------------------ stage configuration
+    def shading_weights(self, alternation: int = 1) -> ShadingWeights:
+        """Stage 1's weights at ``alternation`` (1-based, §3.4 schedule), switches applied."""
+        on = self.stage1
+        w = ShadingWeights(
+            lambda_c=self.lambda_g if on and self.use_sc else 0.0,
+            lambda_p=self.lambda_g if on and self.use_sp else 0.0,
+            lambda_m=self.lambda_m if on and self.use_sm else 0.0,
+            lambda_l=self.lambda_l if on and self.use_sl else 0.0,
+        )
+        for _ in range(alternation - 1):
+            w = w.step(self.tau)
+        return w
+
+    def reflectance_weights(self, alternation: int = 1) -> ReflectanceWeights:
+        """Stage 2's weights at ``alternation`` (1-based, §3.4 schedule), switches applied."""
+        on = self.stage2
+        w = ReflectanceWeights(
+            gamma_l=self.gamma_l if on and self.use_rl else 0.0,
+            gamma_m=self.gamma_m if on and self.use_rm else 0.0,
+            gamma_g=self.gamma_g if on and self.use_rg else 0.0,
+            gamma_a=self.gamma_a,
+        )
+        for _ in range(alternation - 1):
+            w = w.step(self.tau)
+        return w
+
+    def shading_options(self) -> ShadingOptions:
+        """Stage 1's prior constants and PCG settings (the pipeline reports, not warns)."""
+        return ShadingOptions(
+            t_c=self.t_c,
+            t_b=self.t_b,
+            t_m=self.t_m,
+            matting_eps=self.matting_eps,
+            dark_eps=self.dark_eps,
+            dark_level=self.dark_level,
+            clip_level=self.clip_level,
+            base_sigma=self.base_sigma,
+            lle_k=self.lle_k,
+            lle_reg=self.lle_reg,
+            lle_neighbours=self.lle_neighbours,
+            seed=self.seed,
+            anchor=self.anchor,
+            tol=self.cg_tol,
+            max_iter=self.cg_max_iter,
+            warm_max_iter=self.warm_cg_max_iter,
+            levels=self.coarse_levels,
+            warn=False,
+        )
+
+    def reflectance_options(self) -> ReflectanceOptions:
+        """Stage 2's prior constants and Split-Bregman settings."""
+        return ReflectanceOptions(
+            theta=self.theta,
+            value_scale=self.value_scale,
+            t=self.t,
+            t_g=self.t_g,
+            window=self.window,
+            colour_weights=self.colour_weights,
+            tol=self.bregman_tol,
+            max_outer=self.bregman_iter,
+            cg_tol=self.bregman_cg_tol,
+            cg_max_iter=self.bregman_cg_iter,
+            track_objective=False,
+            eps=self.shading_floor,
+        )
 
     @staticmethod
     def _check_keys(data: dict[str, Any]) -> None:
@@ -312,25 +426,35 @@ class Parameters:
         return text
 
 
-_PAPER: dict[str, Any] = {}  # the dataclass defaults are the paper's values
-
-#: Named parameter sets. ``paper``: the paper's values (the dataclass defaults). ``default``:
-#: tuned on the MIT-Berkeley objects for quality and speed. The first shading solve (coarse to
-#: fine) is capped at 100 PCG iterations per level and the later, warm-started ones at 30; the
-#: Split-Bregman stage runs 2 outer iterations of 3 CG steps (an inexact, early-stopped L1 solve:
-#: more iterations flatten further and scored worse on MIT and on noisy synthetic Mondrians).
+#: Named parameter sets. ``default`` (= ``Parameters()``): tuned on the MIT-Berkeley objects for
+#: quality and speed. The first shading solve (coarse to fine) is capped at 100 PCG iterations
+#: per level and the later, warm-started ones at 30; the Split-Bregman stage runs 2 outer
+#: iterations of 3 CG steps (an inexact, early-stopped L1 solve: more iterations flatten further
+#: and scored worse on MIT and on noisy synthetic Mondrians). ``paper``: the same method with
+#: the solvers at their most thorough (300 PCG iterations, 4 x 5 Split-Bregman steps). The
+#: paper's own values (§4: λ, γ, θ, τ, t, k = 5, 60/30 px patches) are in both.
 #: Measured mean LMSE in the README.
 PRESETS: dict[str, dict[str, Any]] = {
-    "paper": _PAPER,
-    "default": {
-        "cg_max_iter": 100,
-        "warm_cg_max_iter": 30,
-        "bregman_iter": 2,
-        "bregman_cg_iter": 3,
+    "default": {},
+    "paper": {
+        "cg_max_iter": 300,
+        "warm_cg_max_iter": 0,
+        "bregman_iter": 4,
+        "bregman_cg_iter": 5,
     },
 }
 
-_OFF_R = {"use_rl": False, "use_rm": False, "use_rg": False}
+_ALL_ON: dict[str, Any] = {
+    "use_sc": True,
+    "use_sp": True,
+    "use_sm": True,
+    "use_sl": True,
+    "use_rl": True,
+    "use_rm": True,
+    "use_rg": True,
+    "stage1": True,
+    "stage2": True,
+}
 VARIANTS: dict[str, dict[str, Any]] = {
     "v1": {"use_sc": False, "use_sp": False, "use_sm": False},
     "v2": {"use_sm": False},

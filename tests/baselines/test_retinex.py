@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchiid.baselines import ColorRetinex, color_retinex
+from torchiid.baselines import ColorRetinex, RetinexResult, color_retinex
 from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.eval import mit_lmse
 from torchiid.synthetic import mondrian
@@ -17,7 +17,9 @@ def test_product_shapes_and_mask_outside():
     img = _image(b=2).float()
     mask = torch.ones(2, 1, 12, 14, dtype=torch.bool)
     mask[1, :, :, :4] = False
-    r, s = color_retinex(img, mask)
+    out = color_retinex(img, mask)
+    assert isinstance(out, RetinexResult)
+    r, s = out.reflectance, out.shading
     assert r.shape == (2, 3, 12, 14) and s.shape == (2, 1, 12, 14)
     assert r.dtype == torch.float32 and s.dtype == torch.float32
     assert torch.allclose(r * s, img, rtol=1e-5, atol=1e-7)
@@ -26,19 +28,21 @@ def test_product_shapes_and_mask_outside():
     gray_max = r.mean(1, keepdim=True).masked_fill(~mask, 0).amax(dim=(1, 2, 3))
     assert torch.allclose(gray_max, torch.ones(2), atol=1e-5)
     # batch == one by one
-    r1, s1 = color_retinex(img[1:], mask[1:])
+    one = color_retinex(img[1:], mask[1:])
+    r1, s1 = one.reflectance, one.shading
     assert torch.allclose(r1, r[1:], atol=1e-5) and torch.allclose(s1, s[1:], atol=1e-5)
-    mr, ms = ColorRetinex()(img, mask)
-    assert torch.equal(mr, r) and torch.equal(ms, s)
+    mod = ColorRetinex()(img, mask)
+    assert torch.equal(mod.reflectance, r) and torch.equal(mod.shading, s)
 
 
 def test_extreme_thresholds():
     img = _image()
     # every difference is reflectance: shading constant, gray reflectance ∝ gray image
-    r, s = color_retinex(img, threshold_gray=0.0, threshold_color=0.0)
+    s = color_retinex(img, threshold_gray=0.0, threshold_color=0.0).shading
     assert torch.allclose(s, s.mean().expand_as(s), rtol=1e-6)
     # no difference is reflectance: gray reflectance constant, shading ∝ gray image
-    r, s = color_retinex(img, threshold_gray=1e9, threshold_color=1e9)
+    out = color_retinex(img, threshold_gray=1e9, threshold_color=1e9)
+    r, s = out.reflectance, out.shading
     gray_r = r.mean(1)
     assert torch.allclose(gray_r, torch.ones_like(gray_r), rtol=1e-6)
     assert torch.allclose(s, img.mean(1, keepdim=True), rtol=1e-6)
@@ -79,7 +83,7 @@ def test_poisson_solution_matches_dense_least_squares():
     mask[0:3, 0:2] = False
     mask[6:, 7:] = False
     tg, tc, eps = 0.075, 0.3, 3 / 257
-    r, s = color_retinex(img[None], torch.from_numpy(mask), tg, tc)
+    r = color_retinex(img[None], torch.from_numpy(mask), tg, tc).reflectance
     ours = torch.log(r[0].mean(0)).numpy()
     ref = _reference_log_reflectance(img.numpy(), mask, tg, tc, eps)
     diff = (ours - ref)[mask]
@@ -89,20 +93,20 @@ def test_poisson_solution_matches_dense_least_squares():
 def test_gray_threshold_semantics():
     img = torch.full((1, 3, 6, 8), 0.5, dtype=torch.float64)
     img[..., :, 4:] *= np.exp(0.1)  # log step 0.1 > 0.075: reflectance
-    r, s = color_retinex(img)
+    s = color_retinex(img).shading
     assert torch.allclose(s, s.mean().expand_as(s), rtol=1e-6)
     img = torch.full((1, 3, 6, 8), 0.5, dtype=torch.float64)
     img[..., :, 4:] *= np.exp(0.05)  # log step 0.05 < 0.075: shading
-    r, s = color_retinex(img)
+    r = color_retinex(img).reflectance
     assert torch.allclose(r.mean(1), torch.ones(1, 6, 8, dtype=torch.float64), rtol=1e-6)
 
 
 def test_mondrian_better_than_trivial_baseline():
     syn = mondrian(48, 48, patches=8, seed=1)
-    r, s = color_retinex(syn.image)
-    ours = mit_lmse(syn.shading, syn.reflectance, s, r).item()
+    out = color_retinex(syn.image)
+    ours = mit_lmse(syn.reflectance, syn.shading, out.reflectance, out.shading).item()
     ones = torch.ones_like(syn.shading)
-    r_is_i = mit_lmse(syn.shading, syn.reflectance, ones, syn.image).item()
+    r_is_i = mit_lmse(syn.reflectance, syn.shading, syn.image, ones).item()
     assert ours < 0.5 * r_is_i
 
 

@@ -15,9 +15,10 @@ import torch
 import torchiid.cli as cli
 import torchiid.model as model
 from torchiid.baselines.retinex import color_retinex
-from torchiid.commands.eval import METRICS, add_eval_parser, run_eval
+from torchiid.commands.eval import add_eval_parser, run_eval
 from torchiid.core.exceptions import ShapeError, TorchiidError
 from torchiid.eval import (
+    METRICS,
     DatasetError,
     DenseFolderDataset,
     IIWDataset,
@@ -26,6 +27,7 @@ from torchiid.eval import (
     dssim,
     local_mse,
     mit_lmse,
+    run_evaluation,
     saw_ap,
     si_mse,
     whdr,
@@ -198,7 +200,7 @@ def test_mit_trivial_rows_equal_metric(tmp_path, method):
         r, sh = _trivial(method, s.image[None])
         m = s.mask[None]
         assert float(row["lmse"]) == pytest.approx(
-            float(mit_lmse(s.shading[None], s.reflectance[None], sh, r, m)[0]), rel=1e-12
+            float(mit_lmse(s.reflectance[None], s.shading[None], r, sh, m)[0]), rel=1e-12
         )
         assert float(row["lmse_shading"]) == pytest.approx(
             float(local_mse(s.shading[None], sh, m)[0]), rel=1e-12
@@ -222,13 +224,36 @@ def test_mit_retinex_and_table(tmp_path, capsys):
     out = tmp_path / "out"
     assert _run(["mit", root, "--method", "retinex", "-o", out, "--no-progress"]) == 0
     s = MITDataset(root)[0]
-    r, sh = color_retinex(s.image[None], mask=s.mask[None])
-    expect = float(mit_lmse(s.shading[None], s.reflectance[None], sh, r, s.mask[None])[0])
+    out_r = color_retinex(s.image[None], mask=s.mask[None])
+    expect = float(
+        mit_lmse(
+            s.reflectance[None], s.shading[None], out_r.reflectance, out_r.shading, s.mask[None]
+        )[0]
+    )
     assert float(_rows(out)[0]["lmse"]) == pytest.approx(expect, rel=1e-6)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["parameters"]["threshold_gray"] == 0.075
     text = capsys.readouterr().out
     assert "obj0" in text and "mean" in text and f"{expect:.4f}" in text
+
+
+def test_cli_and_python_api_agree(tmp_path):
+    root = _fake_dense(tmp_path / "dense")
+    cli_out, api_out = tmp_path / "cli", tmp_path / "api"
+    argv = ["dense", root, "--method", "s=i", "--batch-size", "2", "--no-progress"]
+    assert _run([*argv, "-o", cli_out]) == 0
+    result = run_evaluation("dense", root, method="s=i", batch_size=2, output=api_out)
+    rows = _rows(cli_out)
+    assert [r["id"] for r in rows] == list(result.rows) == list(result.ids)
+    for row in rows:
+        assert [float(row[c]) for c in METRICS["dense"]] == [
+            result.rows[row["id"]][c] for c in METRICS["dense"]
+        ]
+    summary, api = json.loads((cli_out / "summary.json").read_text()), dict(result.summary)
+    for data in (summary, api):
+        for key in ("started", "median_seconds"):
+            data.pop(key)
+    assert summary == api and list(summary) == list(api)
 
 
 def test_iiw_whdr_and_delta(tmp_path):
@@ -301,7 +326,7 @@ def test_results_folder_png_and_npy(tmp_path):
     assert _run(["mit", root, "--results", res, "-o", out, "--no-progress"]) == 0
     for s, row in zip(MITDataset(root), _rows(out), strict=True):
         r, sh = layers[s.id]
-        expect = mit_lmse(s.shading[None], s.reflectance[None], sh[None], r[None], s.mask[None])
+        expect = mit_lmse(s.reflectance[None], s.shading[None], r[None], sh[None], s.mask[None])
         assert float(row["lmse"]) == pytest.approx(float(expect[0]), rel=1e-6)
     assert json.loads((out / "summary.json").read_text())["method"] == "results"
 

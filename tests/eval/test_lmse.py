@@ -87,14 +87,14 @@ def test_mit_lmse_properties():
     s = torch.rand(1, 1, 40, 40, generator=gen) + 0.1
     r = torch.rand(1, 3, 40, 40, generator=gen) + 0.1
     mask = torch.rand(1, 1, 40, 40, generator=gen) > 0.2
-    assert mit_lmse(s, r, 2 * s, 0.5 * r, mask).item() == pytest.approx(0.0, abs=1e-12)
+    assert mit_lmse(r, s, 0.5 * r, 2 * s, mask).item() == pytest.approx(0.0, abs=1e-12)
     # 3-channel shading is reduced to gray; gray reflectance estimate is accepted
-    out = mit_lmse(s, r, s.expand(1, 3, 40, 40), r.mean(1, keepdim=True), mask)
+    out = mit_lmse(r, s, r.mean(1, keepdim=True), s.expand(1, 3, 40, 40), mask)
     assert out.item() == pytest.approx(0.0, abs=1e-12)
     ones = torch.ones_like(s)
     half = 0.5 * local_mse(s, ones, mask) + 0.5 * local_mse(r.mean(1, keepdim=True), ones, mask)
-    assert mit_lmse(s, r, ones, ones, mask).item() == pytest.approx(half.item())
-    assert 0 < mit_lmse(s, r, ones, ones, mask).item() < 1
+    assert mit_lmse(r, s, ones, ones, mask).item() == pytest.approx(half.item())
+    assert 0 < mit_lmse(r, s, ones, ones, mask).item() < 1
 
 
 def test_lmse_errors():
@@ -106,4 +106,4 @@ def test_lmse_errors():
     with pytest.raises(ShapeError):
         local_mse(g, g, mask=torch.ones(1, 1, 29, 30))
     with pytest.raises(ShapeError):
-        mit_lmse(g, torch.rand(1, 2, 30, 30), g, g)
+        mit_lmse(torch.rand(1, 2, 30, 30), g, g, g)

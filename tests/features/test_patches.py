@@ -6,13 +6,13 @@ import torch.nn.functional as F
 from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 from skimage import data
 
+from torchiid.core.colour import linear_to_srgb
 from torchiid.core.exceptions import ImageError, ParameterError, ShapeError
 from torchiid.features import patches as patches_mod
 from torchiid.features.backbone import FeatureMapExtractor, efficientnet_lite0, feature_offset
 from torchiid.features.onnx_backend import OnnxFeatureExtractor
 from torchiid.features.patches import (
     PatchFeatureExtractor,
-    _linear_to_srgb,
     patch_features,
     patch_grid,
 )
@@ -177,7 +177,7 @@ def test_dtype_follows_input(image, onnx_extractor):
 
 def test_linear_to_srgb_matches_kornia_and_has_finite_gradient():
     x = torch.linspace(0, 1, 101, dtype=torch.float64).requires_grad_(True)
-    y = _linear_to_srgb(x)
+    y = linear_to_srgb(x)
     ref = linear_rgb_to_rgb(x.detach().expand(3, -1)[None, :, :, None])[0, 0, :, 0]
     torch.testing.assert_close(y, ref)
     y.sum().backward()

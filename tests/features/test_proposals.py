@@ -4,9 +4,9 @@ import torch
 from skimage import data, transform
 
 from torchiid.core.exceptions import ImageError, ParameterError, ShapeError
+from torchiid.features.proposal_features import atom_histograms
 from torchiid.features.proposals import (
     Proposals,
-    _atom_histograms,
     linear_to_srgb,
     selective_search,
 )
@@ -184,7 +184,7 @@ def test_bad_parameters():
 def test_atom_histograms(astronaut):
     rng = np.random.default_rng(0)
     atoms = rng.integers(0, 5, astronaut.shape[0] * astronaut.shape[1])
-    hist = _atom_histograms(astronaut, atoms, 5)
+    hist = atom_histograms(astronaut, atoms, 5)
     sizes = np.bincount(atoms, minlength=5)
     assert hist.shape == (5, 75 + 240)
     per_group = np.concatenate(

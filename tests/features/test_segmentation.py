@@ -1,9 +1,18 @@
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
+import torch
 from skimage import data, transform
 
 from torchiid.core.exceptions import ParameterError, ShapeError
-from torchiid.features.segmentation import graph_segmentation, segmentation_backend
+from torchiid.features.segmentation import (
+    felzenszwalb_segments,
+    graph_segmentation,
+    segmentation_backend,
+    start_felzenszwalb_segments,
+)
+from torchiid.synthetic import mondrian
 
 
 @pytest.fixture(scope="module")
@@ -65,3 +74,24 @@ def test_errors():
         graph_segmentation(np.zeros((10, 10, 3)), scale=0)
     with pytest.raises(ParameterError, match="backend"):
         graph_segmentation(np.zeros((10, 10, 3)), scale=10, backend="x")
+
+
+def test_felzenszwalb_segments_batch():
+    s = mondrian(40, 48, batch=2, seed=1)
+    seg = felzenszwalb_segments(s.image, scale=100, min_size=20)
+    assert seg.shape == (2, 40, 48) and seg.dtype == torch.long
+    assert int(seg.min()) == 0 and int(seg.max()) >= 2
+    one = felzenszwalb_segments(s.image[1:], scale=100, min_size=20)
+    assert torch.equal(seg[1:], one)
+
+
+def test_felzenszwalb_segments_in_the_background_and_on_srgb_input():
+    from torchiid.core.colour import linear_to_srgb
+
+    s = mondrian(40, 48, batch=2, seed=1)
+    seg = felzenszwalb_segments(s.image, scale=100, min_size=20)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        later = start_felzenszwalb_segments(s.image, scale=100, min_size=20, executor=pool)
+        assert torch.equal(later(), seg)
+    srgb = linear_to_srgb(s.image)
+    assert torch.equal(felzenszwalb_segments(srgb, linear=False, scale=100, min_size=20), seg)

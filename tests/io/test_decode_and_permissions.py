@@ -9,6 +9,7 @@ import pytest
 import torch
 
 import torchiid.io.image as image_module
+from torchiid.core.colour import decode_lut
 from torchiid.io import load_image, save_image, save_uint8, srgb_to_linear
 
 
@@ -58,10 +59,10 @@ def test_gray_8bit_is_decoded_into_all_three_channels(tmp_path):
 
 
 def test_lookup_tables_are_built_once_and_read_only():
-    lut = image_module._decode_lut(8, False)
-    assert lut is image_module._decode_lut(8, False)
+    lut = decode_lut(8, False)
+    assert lut is decode_lut(8, False)
     assert lut.dtype == np.float32 and lut.shape == (256,) and not lut.flags.writeable
-    assert image_module._decode_lut(16, True).shape == (65536,)
+    assert decode_lut(16, True).shape == (65536,)
 
 
 @pytest.fixture

@@ -2,12 +2,7 @@ import pytest
 import torch
 
 from torchiid.core.exceptions import ShapeError
-from torchiid.priors.representatives import (
-    felzenszwalb_segments,
-    global_pair_term,
-    representative_pixels,
-)
-from torchiid.synthetic import mondrian
+from torchiid.priors.representatives import global_pair_term, representative_pixels
 
 D = torch.float64
 
@@ -79,15 +74,6 @@ def test_global_pairs_count_and_weights():
         ff = f[bi].reshape(3, -1)
         ref = torch.exp(-(ff[:, term.i[bi]] - ff[:, term.j[bi]]).square().sum(0) / (2 * 0.05**2))
         torch.testing.assert_close(term.weights[bi][nz], ref[nz])
-
-
-def test_felzenszwalb_segments_batch():
-    s = mondrian(40, 48, batch=2, seed=1)
-    seg = felzenszwalb_segments(s.image, scale=100, min_size=20)
-    assert seg.shape == (2, 40, 48) and seg.dtype == torch.long
-    assert int(seg.min()) == 0 and int(seg.max()) >= 2
-    one = felzenszwalb_segments(s.image[1:], scale=100, min_size=20)
-    assert torch.equal(seg[1:], one)
 
 
 def test_errors():

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from torchiid.priors.quadratic import StencilQuadratic
-from torchiid.priors.stencil import Stencil, half_offsets
+from torchiid.priors.stencil import Stencil, half_offsets, shift_slices
 
 
 def _dense_difference(h, w, offsets):
@@ -75,3 +75,18 @@ def test_stencil_quadratic_target_rhs():
     direct = (wts * st.valid * (st.apply(x)[:, 0] - c) ** 2).sum()
     const = (wts * st.valid * c**2).sum()
     torch.testing.assert_close(q.energy(x)[0] + const, direct)
+
+
+@pytest.mark.parametrize(("dy", "dx"), [(0, 1), (1, -1), (2, 3), (-1, 0), (0, 0)])
+def test_shift_slices_pair_every_inside_pixel_with_its_partner(dy, dx):
+    h, w = 5, 7
+    idx = torch.arange(h * w).view(h, w)
+    yi, xi, yj, xj = shift_slices(dy, dx, h, w)
+    i, j = idx[yi, xi].reshape(-1), idx[yj, xj].reshape(-1)
+    expect = [
+        (y * w + x, (y + dy) * w + x + dx)
+        for y in range(h)
+        for x in range(w)
+        if 0 <= y + dy < h and 0 <= x + dx < w
+    ]
+    assert list(zip(i.tolist(), j.tolist(), strict=True)) == expect

@@ -5,6 +5,7 @@ from torchiid.core.exceptions import ImageError, ParameterError, ShapeError
 from torchiid.priors.reflectance_terms import COLOUR_WEIGHTS, lab_features, stencil_affinity
 from torchiid.priors.representatives import global_pair_term, representative_pixels
 from torchiid.priors.stencil import Stencil
+from torchiid.stages.config import ReflectanceOptions, ReflectanceProblem, ReflectanceWeights
 from torchiid.stages.reflectance import ReflectanceCache, shading_from_ratio, solve_reflectance
 from torchiid.synthetic import mondrian
 
@@ -18,13 +19,17 @@ def _scene(batch=1, h=48, w=64, seed=3, noise=0.03):
     return s, rho, gpca
 
 
+W = ReflectanceWeights()  # the paper's gammas (20, 20, 2) and gamma_a = 1
+OPTS = ReflectanceOptions()
+
+
 def _rmse(a, b):
     return float((a - b).square().mean().sqrt())
 
 
 def test_mondrian_l1_solution_is_closer_to_truth_than_rho():
     s, rho, gpca = _scene()
-    r = solve_reflectance(rho, s.image, gpca=gpca, segments=s.labels)
+    r = solve_reflectance(ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels), W, OPTS)
     before, after = _rmse(rho, s.reflectance), _rmse(r.reflectance, s.reflectance)
     # measured: 0.030 -> 0.012 with the defaults (0.021 with colour_weights="wide")
     assert after < 0.8 * before
@@ -36,27 +41,28 @@ def test_mondrian_l1_solution_is_closer_to_truth_than_rho():
 
 def test_cache_reuses_the_proposal_factor_and_changes_nothing():
     s, rho, gpca = _scene(h=32, w=40)
-    kw = dict(gpca=gpca, max_outer=2, cg_max_iter=3, window=5)
+    opts = ReflectanceOptions(max_outer=2, cg_max_iter=3, window=5)
+    problem = ReflectanceProblem(rho, s.image, gpca=gpca)
+    scaled = problem.replace(rho=0.9 * rho)  # new rho, same g̊
     cache = ReflectanceCache()
-    first = solve_reflectance(rho, s.image, cache=cache, **kw)
-    again = solve_reflectance(0.9 * rho, s.image, cache=cache, **kw)  # new rho, same g̊
+    first = solve_reflectance(problem, W, opts, cache=cache)
+    again = solve_reflectance(scaled, W, opts, cache=cache)
     assert cache.hits == 1
-    torch.testing.assert_close(
-        again.reflectance, solve_reflectance(0.9 * rho, s.image, **kw).reflectance
-    )
-    torch.testing.assert_close(first.reflectance, solve_reflectance(rho, s.image, **kw).reflectance)
+    torch.testing.assert_close(again.reflectance, solve_reflectance(scaled, W, opts).reflectance)
+    torch.testing.assert_close(first.reflectance, solve_reflectance(problem, W, opts).reflectance)
     gpca.mul_(2.0)  # modified in place: the factor is recomputed, not reused
-    solve_reflectance(rho, s.image, cache=cache, **kw)
+    solve_reflectance(problem, W, opts, cache=cache)
     assert cache.hits == 1
 
 
 def test_batch_equals_one_by_one():
     s, rho, gpca = _scene(batch=2, h=32, w=40)
-    kw = dict(max_outer=3, cg_max_iter=4, window=5)
-    r = solve_reflectance(rho, s.image, gpca=gpca, segments=s.labels, **kw)
+    opts = ReflectanceOptions(max_outer=3, cg_max_iter=4, window=5)
+    r = solve_reflectance(ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels), W, opts)
     for b in range(2):
         sl = slice(b, b + 1)
-        r1 = solve_reflectance(rho[sl], s.image[sl], gpca=gpca[sl], segments=s.labels[sl], **kw)
+        one = ReflectanceProblem(rho[sl], s.image[sl], gpca=gpca[sl], segments=s.labels[sl])
+        r1 = solve_reflectance(one, W, opts)
         torch.testing.assert_close(r.reflectance[sl], r1.reflectance, atol=1e-5, rtol=1e-5)
 
 
@@ -64,17 +70,25 @@ def test_mask_keeps_rho_outside():
     s, rho, gpca = _scene(h=24, w=32)
     mask = torch.ones(1, 1, 24, 32, dtype=torch.bool)
     mask[..., :8, :10] = False
-    r = solve_reflectance(rho, s.image, gpca=gpca, segments=s.labels, mask=mask, window=5)
+    problem = ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels, mask=mask)
+    r = solve_reflectance(problem, W, ReflectanceOptions(window=5))
     assert torch.equal(r.reflectance[~mask.expand_as(rho)], rho[~mask.expand_as(rho)])
     assert not torch.equal(r.reflectance[mask.expand_as(rho)], rho[mask.expand_as(rho)])
 
 
 def test_terms_switch_off():
     s, rho, gpca = _scene(h=20, w=24)
-    off = solve_reflectance(rho, s.image, gamma_l=0, gamma_m=None, gamma_g=0, gpca=gpca)
+    # the old gamma_m=None (off) is 0 now
+    off_w = ReflectanceWeights(gamma_l=0, gamma_m=0, gamma_g=0)
+    off = solve_reflectance(ReflectanceProblem(rho, s.image, gpca=gpca), off_w, OPTS)
     torch.testing.assert_close(off.reflectance, rho)
-    a = solve_reflectance(rho, s.image, gamma_m=0, gamma_g=0, window=5)
-    a_nogpca = solve_reflectance(rho, s.image, gpca=None, gamma_g=0, window=5)
+    opts = ReflectanceOptions(window=5)
+    a = solve_reflectance(
+        ReflectanceProblem(rho, s.image), ReflectanceWeights(gamma_m=0, gamma_g=0), opts
+    )
+    a_nogpca = solve_reflectance(
+        ReflectanceProblem(rho, s.image, gpca=None), ReflectanceWeights(gamma_g=0), opts
+    )
     torch.testing.assert_close(a.reflectance, a_nogpca.reflectance)
     assert int(a.num_representatives[0]) == 0
 
@@ -85,9 +99,10 @@ def test_merged_and_separate_objectives_are_identical():
     rho, img, gp = rho.double(), s.image.double(), gpca.double()
     g = torch.Generator().manual_seed(7)
     z0 = (rho + 0.05 * torch.randn(rho.shape, generator=g, dtype=torch.float64)).clamp(0, 1)
-    kw = dict(gpca=gp, segments=s.labels, window=5, max_outer=0, value_scale=1.0, z0=z0)
-    m = solve_reflectance(rho, img, merge_stencil_terms=True, **kw)
-    sep = solve_reflectance(rho, img, merge_stencil_terms=False, **kw)
+    problem = ReflectanceProblem(rho, img, gpca=gp, segments=s.labels)
+    opts = ReflectanceOptions(window=5, max_outer=0, value_scale=1.0)
+    m = solve_reflectance(problem, W, opts.replace(merge_stencil_terms=True), z0=z0)
+    sep = solve_reflectance(problem, W, opts.replace(merge_stencil_terms=False), z0=z0)
     # independent objective: γ_l‖v^l Mz‖₁ + γ_m‖v^m Mz‖₁ + γ_g‖v^g C z‖₁ + γ_a‖z − ρ‖²
     w_l, lab_scale = COLOUR_WEIGHTS["bi"]  # the default colour_weights
     rbar = lab_features(rho, luminance_weight=w_l, lab_scale=lab_scale)
@@ -108,33 +123,40 @@ def test_merged_and_separate_objectives_are_identical():
 
 def test_errors():
     s, rho, gpca = _scene(h=16, w=16)
+    P = ReflectanceProblem
     with pytest.raises(ShapeError, match="batch size and \\(H, W\\) must match"):
-        solve_reflectance(rho, s.image[..., :8])
+        solve_reflectance(P(rho, s.image[..., :8]), W, OPTS)
     bad = rho.clone()
     bad[0, 1, 2, 3] = float("nan")
     with pytest.raises(ImageError, match="rho contains 1 NaN"):
-        solve_reflectance(bad, s.image)
+        solve_reflectance(P(bad, s.image), W, OPTS)
     with pytest.raises(ShapeError, match=r"expected gpca of shape \(1, d, 16, 16\)"):
-        solve_reflectance(rho, s.image, gpca=gpca[..., :8])
+        solve_reflectance(P(rho, s.image, gpca=gpca[..., :8]), W, OPTS)
     with pytest.raises(ShapeError, match="expected a bool mask"):
-        solve_reflectance(rho, s.image, mask=torch.ones(1, 1, 16, 16))
+        solve_reflectance(P(rho, s.image, mask=torch.ones(1, 1, 16, 16)), W, OPTS)
     with pytest.raises(ParameterError, match="colour_weights must be one of bi, wide"):
-        solve_reflectance(rho, s.image, colour_weights="narrow")
+        solve_reflectance(P(rho, s.image), W, ReflectanceOptions(colour_weights="narrow"))
     with pytest.raises(ShapeError, match=r"expected segments of shape \(1, 16, 16\)"):
-        solve_reflectance(rho, s.image, segments=s.labels[:, :4])
-    with pytest.raises(ParameterError, match="gammas must be >= 0"):
-        solve_reflectance(rho, s.image, gamma_l=-1.0)
-    with pytest.raises(ParameterError, match="deviations t, t_g must be > 0"):
-        solve_reflectance(rho, s.image, t=0.0)
+        solve_reflectance(P(rho, s.image, segments=s.labels[:, :4]), W, OPTS)
+    # parameter checks moved to the config objects' constructors
+    with pytest.raises(ParameterError, match=r"gamma_l must be >= 0"):
+        ReflectanceWeights(gamma_l=-1.0)
+    with pytest.raises(ParameterError, match=r"deviations t > 0 and t_g >= 0 needed"):
+        ReflectanceOptions(t=0.0)
 
 
 def test_channels_last_inputs_give_the_same_answer():
     s, rho, gpca = _scene(h=24, w=32)
-    kw = dict(gpca=gpca, segments=s.labels, max_outer=2, cg_max_iter=3, window=5)
-    ref = solve_reflectance(rho, s.image, **kw)
+    opts = ReflectanceOptions(max_outer=2, cg_max_iter=3, window=5)
+    ref = solve_reflectance(ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels), W, opts)
     cl = torch.channels_last
     r = solve_reflectance(
-        rho.to(memory_format=cl), s.image.to(memory_format=cl), z0=rho.to(memory_format=cl), **kw
+        ReflectanceProblem(
+            rho.to(memory_format=cl), s.image.to(memory_format=cl), gpca=gpca, segments=s.labels
+        ),
+        W,
+        opts,
+        z0=rho.to(memory_format=cl),
     )
     torch.testing.assert_close(r.reflectance, ref.reflectance, atol=1e-6, rtol=1e-6)
     assert r.solver.z.is_contiguous()

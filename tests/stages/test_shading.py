@@ -4,8 +4,11 @@ import torch
 from torchiid.core.exceptions import ConvergenceWarning, ImageError, ParameterError, ShapeError
 from torchiid.priors.lle import patch_rgb_features
 from torchiid.priors.shading_terms import shading_stencil
+from torchiid.stages.config import ShadingOptions, ShadingProblem, ShadingWeights
 from torchiid.stages.shading import build_shading_system, solve_shading
 from torchiid.synthetic import mondrian
+
+W = ShadingWeights()  # the paper's weights (lambda_g = lambda_m = 0.02 on S_c, S_p, S_m; 2 on S_l)
 
 
 def _inputs(h, w, batch=1, seed=0, dtype=torch.float64, stride=8):
@@ -16,12 +19,12 @@ def _inputs(h, w, batch=1, seed=0, dtype=torch.float64, stride=8):
     ys, xs = torch.arange(stride // 2, h, stride), torch.arange(stride // 2, w, stride)
     ctr = torch.stack(torch.meshgrid(ys, xs, indexing="ij"), -1).reshape(-1, 2)
     feats = patch_rgb_features(syn.image, ctr, patch_size=stride)
-    return syn, dict(patch_centers=ctr, patch_features=feats, similarity=sim)
+    return syn, ShadingProblem(syn.image, patch_centers=ctr, patch_features=feats, similarity=sim)
 
 
 def test_mondrian_recovery_and_exact_reconstruction():
-    syn, kw = _inputs(48, 48)
-    res = solve_shading(syn.image, **kw, tol=1e-8, max_iter=3000)
+    syn, problem = _inputs(48, 48)
+    res = solve_shading(problem, W, ShadingOptions(tol=1e-8, max_iter=3000))
     assert res.diagnostics.converged
     assert set(res.diagnostics.terms) == {"S_c", "S_p", "S_m", "S_l"}
     s, gt = res.log_shading.flatten(), syn.shading.log().flatten()
@@ -35,10 +38,10 @@ def test_mondrian_recovery_and_exact_reconstruction():
 
 
 def test_solution_solves_the_assembled_system():
-    syn, kw = _inputs(12, 10, seed=3, stride=4)
+    syn, problem = _inputs(12, 10, seed=3, stride=4)
     anchor = 1e-3
-    res = solve_shading(syn.image, **kw, anchor=anchor, tol=1e-11, max_iter=2000)
-    system, _ = build_shading_system(syn.image, **kw)
+    res = solve_shading(problem, W, ShadingOptions(anchor=anchor, tol=1e-11, max_iter=2000))
+    system = build_shading_system(problem, W, ShadingOptions()).total
     a = system.to_sparse().to_dense()
     n = a.shape[0]
     alpha = anchor * a.diagonal().mean()
@@ -52,104 +55,119 @@ def test_solution_solves_the_assembled_system():
 
 
 def test_batched_equals_per_image():
-    syn, kw = _inputs(24, 24, batch=2, seed=1)
-    both = solve_shading(syn.image, **kw, tol=1e-9, max_iter=2000)
+    syn, problem = _inputs(24, 24, batch=2, seed=1)
+    opts = ShadingOptions(tol=1e-9, max_iter=2000)
+    both = solve_shading(problem, W, opts)
     for b in range(2):
         one = solve_shading(
-            syn.image[b : b + 1],
-            patch_centers=kw["patch_centers"],
-            patch_features=kw["patch_features"][b : b + 1],
-            similarity=kw["similarity"][b : b + 1],
-            tol=1e-9,
-            max_iter=2000,
+            ShadingProblem(
+                syn.image[b : b + 1],
+                patch_centers=problem.patch_centers,
+                patch_features=problem.patch_features[b : b + 1],
+                similarity=problem.similarity[b : b + 1],
+            ),
+            W,
+            opts,
         )
         torch.testing.assert_close(both.log_shading[b], one.log_shading[0], atol=1e-6, rtol=0)
 
 
 def test_mask_decomposes_object_by_itself():
-    syn, kw = _inputs(24, 24, seed=2)
+    syn, problem = _inputs(24, 24, seed=2)
     mask = torch.zeros(1, 1, 24, 24, dtype=torch.bool)
     mask[..., 3:20, 5:22] = True
-    res = solve_shading(syn.image, **kw, mask=mask, tol=1e-9, max_iter=2000)
+    opts = ShadingOptions(tol=1e-9, max_iter=2000)
+    res = solve_shading(problem.replace(mask=mask), W, opts)
     assert float(res.log_shading[~mask].abs().max()) == 0.0
     torch.testing.assert_close(
         res.reflectance[~mask.expand(-1, 3, -1, -1)], syn.image[~mask.expand(-1, 3, -1, -1)]
     )
     other = syn.image.clone()
     other[~mask.expand(-1, 3, -1, -1)] = torch.rand(int((~mask).sum()) * 3, dtype=other.dtype)
-    res2 = solve_shading(other, **kw, mask=mask, tol=1e-9, max_iter=2000)
+    res2 = solve_shading(problem.replace(image=other, mask=mask), W, opts)
     torch.testing.assert_close(res2.log_shading, res.log_shading, atol=1e-6, rtol=0)
 
 
 def test_coarse_to_fine_reaches_the_same_answer_with_fewer_iterations():
-    syn, kw = _inputs(64, 64, seed=4, dtype=torch.float32)
-    one = solve_shading(syn.image, **kw, tol=1e-4, max_iter=3000, levels=1)
-    three = solve_shading(syn.image, **kw, tol=1e-4, max_iter=3000, levels=3)
+    syn, problem = _inputs(64, 64, seed=4, dtype=torch.float32)
+    one = solve_shading(problem, W, ShadingOptions(tol=1e-4, max_iter=3000, levels=1))
+    three = solve_shading(problem, W, ShadingOptions(tol=1e-4, max_iter=3000, levels=3))
     assert three.diagnostics.iterations < one.diagnostics.iterations
     diff = (three.log_shading - one.log_shading).abs().max()
     assert float(diff) < 0.05
 
 
 def test_warm_start_and_switches():
-    syn, kw = _inputs(24, 24, seed=5)
-    ref = solve_shading(syn.image, **kw, tol=1e-8, max_iter=2000)
-    warm = solve_shading(syn.image, **kw, x0=ref.log_shading, tol=1e-8, max_iter=2000)
+    syn, problem = _inputs(24, 24, seed=5)
+    opts = ShadingOptions(tol=1e-8, max_iter=2000)
+    ref = solve_shading(problem, W, opts)
+    warm = solve_shading(problem, W, opts, x0=ref.log_shading)
     assert warm.diagnostics.iterations < ref.diagnostics.iterations
-    only_l = solve_shading(syn.image, lambda_g=0, tol=1e-8, max_iter=2000)
+    # the paper's lambda_g = 0: S_c and S_p off
+    only_l = solve_shading(ShadingProblem(syn.image), ShadingWeights(lambda_c=0, lambda_p=0), opts)
     assert only_l.diagnostics.terms == ("S_l",)
-    no_sp = solve_shading(syn.image, **kw, use_sp=False, lambda_m=0)
+    no_sp = solve_shading(problem, ShadingWeights(lambda_p=0, lambda_m=0), ShadingOptions())
     assert no_sp.diagnostics.terms == ("S_c", "S_l")
 
 
 def test_errors_and_warning():
-    syn, kw = _inputs(16, 16)
+    syn, problem = _inputs(16, 16)
+    o = ShadingOptions()
     bad = syn.image.clone()
     bad[0, 0, 3, 3] = float("nan")
     with pytest.raises(ImageError, match="NaN"):
-        solve_shading(bad)
+        solve_shading(ShadingProblem(bad), W, o)
     with pytest.raises(ShapeError):
-        solve_shading(syn.image[:, :2])
+        solve_shading(ShadingProblem(syn.image[:, :2]), W, o)
     with pytest.raises(ShapeError, match="mask"):
-        solve_shading(syn.image, mask=torch.ones(1, 1, 8, 8, dtype=torch.bool))
+        solve_shading(
+            ShadingProblem(syn.image, mask=torch.ones(1, 1, 8, 8, dtype=torch.bool)), W, o
+        )
     with pytest.raises(ParameterError, match="empty"):
-        solve_shading(syn.image, mask=torch.zeros(1, 1, 16, 16, dtype=torch.bool))
+        solve_shading(
+            ShadingProblem(syn.image, mask=torch.zeros(1, 1, 16, 16, dtype=torch.bool)), W, o
+        )
     with pytest.raises(ParameterError, match="switched off"):
-        solve_shading(syn.image, lambda_g=0, lambda_l=0)
+        off = ShadingWeights(lambda_c=0, lambda_p=0, lambda_l=0)
+        solve_shading(ShadingProblem(syn.image), off, o)
     with pytest.raises(ParameterError, match="both"):
-        solve_shading(syn.image, patch_centers=kw["patch_centers"])
+        solve_shading(ShadingProblem(syn.image, patch_centers=problem.patch_centers), W, o)
     with pytest.raises(ShapeError, match="x0"):
-        solve_shading(syn.image, x0=torch.zeros(1, 1, 15, 16, dtype=syn.image.dtype))
+        solve_shading(
+            ShadingProblem(syn.image), W, o, x0=torch.zeros(1, 1, 15, 16, dtype=syn.image.dtype)
+        )
     with pytest.warns(ConvergenceWarning, match="shading PCG"):
-        solve_shading(syn.image, **kw, max_iter=2, tol=1e-10)
+        solve_shading(problem, W, ShadingOptions(max_iter=2, tol=1e-10))
 
 
 def test_cache_reuses_fixed_terms_and_gives_the_same_answer():
     from torchiid.stages.shading import ShadingSystemCache
 
-    syn, kw = _inputs(24, 20, seed=4, stride=6)
+    syn, problem = _inputs(24, 20, seed=4, stride=6)
     cache = ShadingSystemCache()
     base = syn.reflectance
-    opts = dict(tol=1e-9, max_iter=2000, levels=1)
-    first = solve_shading(syn.image, **kw, cache=cache, **opts)
+    opts = ShadingOptions(tol=1e-9, max_iter=2000, levels=1)
+    first = solve_shading(problem, W, opts, cache=cache)
     assert cache.hits == 0 and set(cache.terms) == {"S_c", "S_m", "S_l"}
     # second alternation: new matting base, tau-scaled weights
-    lam = dict(lambda_g=0.024, lambda_m=0.024, lambda_l=2 / 1.2)
-    again = solve_shading(
-        syn.image, **kw, base_image=base, cache=cache, x0=first.log_shading, **lam, **opts
-    )
+    lam = ShadingWeights(lambda_c=0.024, lambda_p=0.024, lambda_m=0.024, lambda_l=2 / 1.2)
+    second = problem.replace(base_image=base)
+    again = solve_shading(second, lam, opts, cache=cache, x0=first.log_shading)
     assert cache.hits == 3
-    plain = solve_shading(syn.image, **kw, base_image=base, **lam, **opts)
+    plain = solve_shading(second, lam, opts)
     torch.testing.assert_close(again.log_shading, plain.log_shading, rtol=0, atol=1e-6)
     # a different image is not served from the cache
-    other = solve_shading(syn.image.flip(-1).contiguous(), **kw, cache=cache, **opts)
+    flipped = problem.replace(image=syn.image.flip(-1).contiguous())
+    other = solve_shading(flipped, W, opts, cache=cache)
     assert cache.hits == 5  # S_c and S_m (features unchanged) reused, S_l rebuilt
-    ref = solve_shading(syn.image.flip(-1).contiguous(), **kw, **opts)
+    ref = solve_shading(flipped, W, opts)
     torch.testing.assert_close(other.log_shading, ref.log_shading, rtol=0, atol=1e-6)
 
 
 def test_channels_last_image_gives_the_same_answer():
-    syn, kw = _inputs(20, 16, seed=6, stride=5)
+    syn, problem = _inputs(20, 16, seed=6, stride=5)
     img = syn.image.to(memory_format=torch.channels_last)
-    a = solve_shading(syn.image, **kw, tol=1e-9, max_iter=2000)
-    b = solve_shading(img, **kw, tol=1e-9, max_iter=2000)
+    opts = ShadingOptions(tol=1e-9, max_iter=2000)
+    a = solve_shading(problem, W, opts)
+    b = solve_shading(problem.replace(image=img), W, opts)
     torch.testing.assert_close(a.log_shading, b.log_shading, rtol=0, atol=1e-7)

@@ -1,5 +1,14 @@
-"""Baseline intrinsic-image methods used for comparison (colour Retinex)."""
+"""Baseline intrinsic-image methods used for comparison (colour Retinex, trivial references)."""
 
-from torchiid.baselines.retinex import ColorRetinex, color_retinex
+from torchiid.baselines.result import BaselineResult
+from torchiid.baselines.retinex import ColorRetinex, RetinexResult, color_retinex
+from torchiid.baselines.trivial import reflectance_is_image, shading_is_image
 
-__all__ = ["ColorRetinex", "color_retinex"]
+__all__ = [
+    "BaselineResult",
+    "ColorRetinex",
+    "RetinexResult",
+    "color_retinex",
+    "reflectance_is_image",
+    "shading_is_image",
+]

@@ -32,18 +32,30 @@ is 1 and the reflectance is the image.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import torch
 
+from torchiid.baselines.result import BaselineResult
 from torchiid.core.check import as_mask, check_image
 from torchiid.core.exceptions import ParameterError
 from torchiid.solvers.pcg import pcg
 
-__all__ = ["color_retinex", "ColorRetinex"]
+__all__ = ["color_retinex", "ColorRetinex", "RetinexResult"]
 
 logger = logging.getLogger(__name__)
 
 GROSSE_EPS = 3.0 / 257.0
+
+
+@dataclass(frozen=True, eq=False)
+class RetinexResult(BaselineResult):
+    """Result of :func:`color_retinex`, **linear**; ``reflectance * shading == image``.
+
+    Attributes:
+        reflectance: ``(B, 3, H, W)`` reflectance; the image itself outside the mask.
+        shading: ``(B, 1, H, W)`` gray shading; 1 outside the mask.
+    """
 
 
 def _grad_y(x: torch.Tensor) -> torch.Tensor:
@@ -103,7 +115,7 @@ def color_retinex(
     eps: float = GROSSE_EPS,
     tol: float = 1e-8,
     max_iter: int = 10000,
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> RetinexResult:
     """Colour Retinex decomposition (Grosse et al. 2009).
 
     Args:
@@ -117,16 +129,16 @@ def color_retinex(
         max_iter: CG iteration cap (a :class:`ConvergenceWarning` is emitted if reached).
 
     Returns:
-        ``(reflectance, shading)``: ``(B, 3, H, W)`` and ``(B, 1, H, W)``, linear, dtype of
-        ``image``, with ``reflectance * shading == image``.
+        :class:`RetinexResult` with ``reflectance`` ``(B, 3, H, W)`` and ``shading``
+        ``(B, 1, H, W)``, linear, dtype of ``image``, with ``reflectance * shading == image``.
 
     Shape:
         - image: ``(B, 3, H, W)``; mask: ``(B, 1, H, W)``.
 
     Example:
         >>> img = torch.rand(1, 3, 16, 16) + 0.1
-        >>> r, s = color_retinex(img)
-        >>> r.shape, s.shape
+        >>> out = color_retinex(img)
+        >>> out.reflectance.shape, out.shading.shape
         (torch.Size([1, 3, 16, 16]), torch.Size([1, 1, 16, 16]))
     """
     check_image(image, "image", channels=3, min_side=2)
@@ -172,7 +184,7 @@ def color_retinex(
     log_r = log_r - torch.where(torch.isfinite(top), top, 0.0)
     shading = torch.where(m, gray_i / torch.exp(log_r), 1.0)
     reflectance = x / shading
-    return reflectance.to(image.dtype), shading.to(image.dtype)
+    return RetinexResult(reflectance.to(image.dtype), shading.to(image.dtype))
 
 
 class ColorRetinex(torch.nn.Module):
@@ -183,8 +195,6 @@ class ColorRetinex(torch.nn.Module):
         self.threshold_gray = threshold_gray
         self.threshold_color = threshold_color
 
-    def forward(
-        self, image: torch.Tensor, mask: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, image: torch.Tensor, mask: torch.Tensor | None = None) -> RetinexResult:
         """See :func:`color_retinex`."""
         return color_retinex(image, mask, self.threshold_gray, self.threshold_color)

@@ -12,8 +12,10 @@ from types import SimpleNamespace
 
 import torch
 
+from torchiid.core.device import resolve_device
 from torchiid.core.exceptions import ParameterError, TorchiidError
 from torchiid.io import load_image, load_mask, save_image
+from torchiid.io.inputs import collect_inputs
 from torchiid.io.layers import layer_file_names, write_layers
 from torchiid.params import Parameters
 from torchiid.priors.shading_terms import pixel_confidence
@@ -99,8 +101,9 @@ def _write_outputs(
     )
     if args.save_iterations and getattr(result, "iterations", None):
         for k, layers in enumerate(result.iterations, start=1):
-            for name in ("sigma", "rho", "R", "S"):
-                x = getattr(layers, name)[0].cpu()
+            named = {"sigma": "sigma", "rho": "rho", "R": "reflectance", "S": "shading"}
+            for name, attr in named.items():
+                x = getattr(layers, attr)[0].cpu()
                 if name in ("sigma", "S"):
                     x = x / torch.quantile(x.flatten(), params.view_quantile).clamp_min(1e-12)
                 save_image(out / f"{stem}-iter{k}-{name}.png", x, "srgb8")
@@ -111,7 +114,7 @@ def _retinex(batch: torch.Tensor, mask: torch.Tensor | None, params: Parameters)
     from torchiid.baselines.retinex import color_retinex
     from torchiid.model import full_resolution_layers
 
-    refl, shad = color_retinex(batch, mask=mask, **RETINEX_DEFAULTS)
+    shad = color_retinex(batch, mask=mask, **RETINEX_DEFAULTS).shading
     layers = full_resolution_layers(batch, shad.clamp_min(1e-4), None, mask, params)
     return SimpleNamespace(
         reflectance=layers.reflectance,
@@ -128,7 +131,6 @@ def run_decompose(args: argparse.Namespace) -> int:
     """Run the ``decompose`` subcommand; returns the exit status."""
     from tqdm import tqdm
 
-    from torchiid.cli import collect_inputs, resolve_device
     from torchiid.model import decompose
 
     params = params_from_args(args)

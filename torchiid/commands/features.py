@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
+from torchiid.core.device import resolve_device
 from torchiid.core.exceptions import TorchiidError
 from torchiid.io import linear_to_srgb, load_image, save_uint8
 
@@ -13,7 +14,6 @@ OUTPUTS = ("gpca.png", "proposals.png", "patch-grid.png")
 
 def run_features(args: argparse.Namespace) -> int:
     """Run the ``features`` subcommand; returns the exit status."""
-    from torchiid.cli import resolve_device
     from torchiid.features.midlevel import midlevel_features
     from torchiid.features.patches import patch_features, patch_grid
     from torchiid.features.proposals import selective_search

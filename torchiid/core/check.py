@@ -100,6 +100,11 @@ def as_mask(mask: torch.Tensor | None, like: torch.Tensor, name: str = "mask") -
     b, _, h, w = like.shape
     if mask is None:
         return torch.ones(b, 1, h, w, dtype=torch.bool, device=like.device)
+    if not isinstance(mask, torch.Tensor):
+        raise ShapeError(
+            f"expected {name} to be a torch.Tensor (bool or numbers, nonzero = inside), "
+            f"got {type(mask).__name__}; use torch.as_tensor"
+        )
     if mask.dim() == 2:
         mask = mask[None, None]
     elif mask.dim() == 3:

@@ -1,4 +1,4 @@
-"""Evaluation: WHDR, LMSE, SAW AP, si-MSE / DSSIM metrics and dataset readers."""
+"""Evaluation: WHDR, LMSE, SAW AP, si-MSE / DSSIM metrics, dataset readers and eval runs."""
 
 from torchiid.eval.datasets import (
     DatasetError,
@@ -14,28 +14,52 @@ from torchiid.eval.datasets import (
 )
 from torchiid.eval.dense import dssim, scale_to_match, si_mse, ssim
 from torchiid.eval.lmse import local_mse, mit_lmse
+from torchiid.eval.results import load_layer
+from torchiid.eval.runner import (
+    METHODS,
+    EvalResult,
+    EvalRunner,
+    method_parameters,
+    open_dataset,
+    run_evaluation,
+    run_method,
+)
 from torchiid.eval.saw import average_precision, saw_ap, saw_scores
+from torchiid.eval.scoring import COUNT_COLUMNS, DATASETS, METRICS, pooled_saw_ap, score_sample
 from torchiid.eval.whdr import load_judgements, whdr
 
 __all__ = [
+    "COUNT_COLUMNS",
+    "DATASETS",
     "DatasetError",
     "DenseFolderDataset",
     "DenseSample",
+    "EvalResult",
+    "EvalRunner",
     "IIWDataset",
     "IIWSample",
+    "METHODS",
+    "METRICS",
     "MITDataset",
     "SAWDataset",
     "SAWSample",
     "average_precision",
     "dssim",
     "load_judgements",
+    "load_layer",
     "local_mse",
+    "method_parameters",
     "mit_lmse",
+    "open_dataset",
+    "pooled_saw_ap",
     "read_id_list",
+    "run_evaluation",
+    "run_method",
     "saw_ap",
     "saw_labels_from_release",
     "saw_scores",
     "scale_to_match",
+    "score_sample",
     "si_mse",
     "ssim",
     "whdr",

@@ -92,10 +92,10 @@ def _gray(x: torch.Tensor) -> torch.Tensor:
 
 
 def mit_lmse(
-    true_shading: torch.Tensor,
     true_reflectance: torch.Tensor,
-    est_shading: torch.Tensor,
+    true_shading: torch.Tensor,
     est_reflectance: torch.Tensor,
+    est_shading: torch.Tensor,
     mask: torch.Tensor | None = None,
     window: int = 20,
 ) -> torch.Tensor:
@@ -105,23 +105,29 @@ def mit_lmse(
     Reflectances with 3 channels are reduced to gray by the channel mean (the reference
     averages the ground truth and feeds gray estimates); a 3-channel shading (e.g. coloured
     illumination) is reduced the same way, a 1-channel one is used as is. All inputs linear.
+    Arguments are reflectance first, as everywhere in the package.
 
     Args:
-        true_shading: ``(B, 1, H, W)`` or ``(B, 3, H, W)``.
         true_reflectance: ``(B, 3, H, W)`` or ``(B, 1, H, W)``.
-        est_shading: ``(B, 1, H, W)`` or ``(B, 3, H, W)``.
+        true_shading: ``(B, 1, H, W)`` or ``(B, 3, H, W)``.
         est_reflectance: ``(B, 3, H, W)`` or ``(B, 1, H, W)``.
+        est_shading: ``(B, 1, H, W)`` or ``(B, 3, H, W)``.
         mask: object mask, as in :func:`local_mse`.
         window: window side.
 
     Returns:
         ``(B,)`` scores (lower is better).
+
+    Example:
+        >>> r, s = torch.rand(1, 3, 40, 40) + 0.1, torch.rand(1, 1, 40, 40) + 0.1
+        >>> float(mit_lmse(r, s, 0.5 * r, 2 * s))  # scale-invariant
+        0.0
     """
     for name, x in (
-        ("true_shading", true_shading),
         ("true_reflectance", true_reflectance),
-        ("est_shading", est_shading),
+        ("true_shading", true_shading),
         ("est_reflectance", est_reflectance),
+        ("est_shading", est_shading),
     ):
         check_shape(x, ("B", "C", "H", "W"), name)
         if x.shape[1] not in (1, 3):

@@ -10,8 +10,9 @@ in for the paper's 4096-d ``fc7``), assigned to the patch centre. Two modes:
   network on its own (in batches); the 7x7 map is averaged.
 
 Colour: the input is **linear** RGB in ``[0, 1]`` (the pipeline's working space); it is encoded to
-sRGB with the sRGB curve (:func:`_linear_to_srgb`, as :func:`kornia.color.linear_rgb_to_rgb`)
-and clipped to ``[0, 1]`` before the network, which was trained on sRGB photos.
+sRGB with the sRGB curve (:func:`torchiid.core.colour.linear_to_srgb`, as
+:func:`kornia.color.linear_rgb_to_rgb`) and clipped to ``[0, 1]`` before the network, which was
+trained on sRGB photos.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from torchiid.core.check import check_image
+from torchiid.core.colour import linear_to_srgb
 from torchiid.core.exceptions import ParameterError
 from torchiid.features.backbone import (
     FEATURE_DIM,
@@ -139,21 +141,6 @@ def _torch_extractor(device: str) -> FeatureMapExtractor:
     return model.eval().requires_grad_(False)
 
 
-def _linear_to_srgb(image: torch.Tensor) -> torch.Tensor:
-    """Encode linear RGB with the sRGB transfer curve (IEC 61966-2-1), clipped to ``[0, 1]``.
-
-    Same values as :func:`kornia.color.linear_rgb_to_rgb` on ``[0, 1]``, but the power branch
-    is clamped so the gradient stays finite at 0.
-
-    Shape:
-        any shape -> the same shape.
-    """
-    x = image.clamp(0.0, 1.0)
-    return torch.where(
-        x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1 / 2.4) - 0.055
-    )
-
-
 def _shared(srgb: torch.Tensor, grid: PatchGrid, feature_map, scale: float) -> torch.Tensor:
     h, w = srgb.shape[-2:]
     hs, ws = max(round(h * scale), 1), max(round(w * scale), 1)
@@ -190,7 +177,7 @@ def _crop(srgb: torch.Tensor, grid: PatchGrid, feature_map, batch_size: int) -> 
 
 def _compute(image, grid, feature_map, mode, scale, batch_size, srgb_input) -> torch.Tensor:
     x = image.float()
-    srgb = x.clamp(0.0, 1.0) if srgb_input else _linear_to_srgb(x)
+    srgb = x.clamp(0.0, 1.0) if srgb_input else linear_to_srgb(x)
     if mode == "shared":
         return _shared(srgb, grid, feature_map, scale)
     return _crop(srgb, grid, feature_map, batch_size)

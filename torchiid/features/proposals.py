@@ -31,23 +31,35 @@ masks on demand.
 before segmentation, since Felzenszwalb's scale ``k`` and the histograms were designed for
 display-referred values; numpy ``HxWx3`` inputs are taken as sRGB already (``uint8``, or float
 in ``[0, 1]``, clipped).
+
+**Modules.** This module holds the public API (:func:`selective_search`, :class:`Proposals`,
+:class:`Strategy`) and the ranking; the colour spaces and histograms are in
+:mod:`torchiid.features.proposal_features`, the regions and their hierarchical grouping in
+:mod:`torchiid.features.proposal_grouping`.
 """
 
 from __future__ import annotations
 
-import heapq
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 
-import cv2
 import numpy as np
-import scipy.ndimage as ndi
 import torch
 
 from torchiid.core.check import check_image
+from torchiid.core.colour import linear_to_srgb_np as linear_to_srgb
 from torchiid.core.exceptions import ImageError, ParameterError, ShapeError
+from torchiid.features.proposal_features import atom_histograms, to_colour_space
+from torchiid.features.proposal_grouping import (
+    adjacency,
+    compact_labels,
+    group_regions,
+    intersect_segmentations,
+    leaf_boxes,
+    leaf_intervals,
+)
 from torchiid.features.segmentation import graph_segmentation
 
 __all__ = ["COLOUR_SPACES", "Proposals", "Strategy", "selective_search", "linear_to_srgb"]
@@ -56,9 +68,6 @@ logger = logging.getLogger(__name__)
 
 COLOUR_SPACES = ("rgb", "hsv", "lab")
 MIN_SIDE = 8
-_COLOUR_BINS = 25
-_TEXTURE_BINS = 10
-_ORIENTATIONS = 8
 _HASH_SEED = 0x5EED5EED
 
 
@@ -146,12 +155,6 @@ class Proposals:
         return member[self.atom_labels].permute(2, 0, 1).contiguous()
 
 
-def linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    """Apply the sRGB transfer function (IEC 61966-2-1) to linear values clipped to ``[0, 1]``."""
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-
-
 def _as_srgb_arrays(image: torch.Tensor | np.ndarray) -> tuple[list[np.ndarray], bool]:
     """Validate the input; return float64 ``HxWx3`` sRGB arrays and whether it was batched."""
     if isinstance(image, np.ndarray):
@@ -188,214 +191,6 @@ def _as_srgb_arrays(image: torch.Tensor | np.ndarray) -> tuple[list[np.ndarray],
 def _check_side(h: int, w: int) -> None:
     if h < MIN_SIDE or w < MIN_SIDE:
         raise ImageError(f"image is {h}x{w} pixels; at least {MIN_SIDE} px per side is needed")
-
-
-def _to_colour_space(srgb: np.ndarray, space: str) -> np.ndarray:
-    """``HxWx3`` sRGB in ``[0, 1]`` to the colour space, every channel scaled to ``[0, 1]``.
-
-    OpenCV's float conversions (D65 CIELab from sRGB; HSV with hue in degrees).
-    """
-    if space == "rgb":
-        return srgb
-    x = np.ascontiguousarray(srgb, dtype=np.float32)
-    if space == "hsv":
-        hsv = cv2.cvtColor(x, cv2.COLOR_RGB2HSV)
-        hsv[..., 0] /= 360.0
-        return hsv.astype(np.float64)
-    lab = cv2.cvtColor(x, cv2.COLOR_RGB2Lab).astype(np.float64)
-    return np.stack(
-        [lab[..., 0] / 100.0, (lab[..., 1] + 128.0) / 255.0, (lab[..., 2] + 128.0) / 255.0], -1
-    ).clip(0.0, 1.0)
-
-
-def _gaussian_derivatives(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(d/dx, d/dy)`` of a float32 ``HxW`` image with Gaussian derivative filters, sigma 1."""
-    u = np.arange(-4, 5, dtype=np.float32)
-    g = np.exp(-0.5 * u * u)
-    g /= g.sum()
-    dg = u * g  # cv2 correlates: the kernel of d/du (G * I) is G'(-u) = u g(u)
-    gx = cv2.sepFilter2D(x, -1, dg, g, borderType=cv2.BORDER_REFLECT)
-    gy = cv2.sepFilter2D(x, -1, g, dg, borderType=cv2.BORDER_REFLECT)
-    return gx, gy
-
-
-def _atom_histograms(x: np.ndarray, atoms: np.ndarray, n_atoms: int) -> np.ndarray:
-    """Colour and texture histogram counts of every atom, ``(A, 75 + 240)`` float64.
-
-    Colour: 25 bins per channel of ``x`` (values in ``[0, 1]``). Texture: per channel and
-    orientation ``o * 45`` degrees, the Gaussian derivative (sigma = 1) along that direction,
-    half-wave rectified, scaled by the channel's largest response and cut into 10 bins (an
-    orientation and its opposite share an axis: where one responds, the other is in bin 0).
-    Computed one channel at a time, so memory stays ``O(H W)``.
-    """
-    xf = np.ascontiguousarray(x, dtype=np.float32)
-    n_bins = 3 * _COLOUR_BINS + 3 * _ORIENTATIONS * _TEXTURE_BINS
-    hist = np.zeros((n_atoms, n_bins))
-
-    def add(base: int, q: np.ndarray, nb: int) -> None:
-        counts = np.bincount(atoms * nb + q.reshape(-1), minlength=n_atoms * nb)
-        hist[:, base : base + nb] += counts.reshape(n_atoms, nb)
-
-    for c in range(3):
-        q = np.minimum((xf[..., c] * _COLOUR_BINS).astype(np.int64), _COLOUR_BINS - 1)
-        add(c * _COLOUR_BINS, q, _COLOUR_BINS)
-    half = _ORIENTATIONS // 2
-    theta = np.arange(half) * (np.pi / half)
-    for c in range(3):
-        gx, gy = _gaussian_derivatives(np.ascontiguousarray(xf[..., c]))
-        d = [np.float32(np.cos(t)) * gx + np.float32(np.sin(t)) * gy for t in theta]
-        scale = _TEXTURE_BINS / max(max(float(np.abs(di).max()) for di in d), 1e-12)
-        for k, dk in enumerate(d):
-            q = np.minimum((np.abs(dk) * scale).astype(np.int64), _TEXTURE_BINS - 1)
-            base = 3 * _COLOUR_BINS + (c * _ORIENTATIONS + k) * _TEXTURE_BINS
-            add(base, np.where(dk > 0, q, 0), _TEXTURE_BINS)
-            add(base + half * _TEXTURE_BINS, np.where(dk < 0, q, 0), _TEXTURE_BINS)
-    return hist
-
-
-def _compact(key: np.ndarray, n_keys: int) -> np.ndarray:
-    """Relabel non-negative ints to ``0 .. n_distinct - 1``, keeping their order."""
-    if n_keys <= 1 << 26:  # a counting pass beats sorting
-        present = np.bincount(key, minlength=n_keys) > 0
-        return (np.cumsum(present) - 1)[key]
-    return np.unique(key, return_inverse=True)[1].reshape(-1)
-
-
-def _atoms(segs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Intersect segmentations: flat atom index ``(N,)`` and a pixel of each atom ``(A,)``."""
-    key = segs[0].reshape(-1)
-    for seg in segs[1:]:
-        r = int(seg.max()) + 1
-        key = _compact(key * r + seg.reshape(-1), (int(key.max()) + 1) * r)
-    rep = np.empty(int(key.max()) + 1, dtype=np.int64)
-    rep[key] = np.arange(key.size)
-    return key, rep
-
-
-def _adjacency(seg: np.ndarray) -> np.ndarray:
-    """Unique unordered pairs ``(E, 2)`` of 4-adjacent distinct labels."""
-    r = int(seg.max()) + 1
-    a = np.concatenate([seg[:, :-1].ravel(), seg[:-1].ravel()])
-    b = np.concatenate([seg[:, 1:].ravel(), seg[1:].ravel()])
-    keep = a != b
-    a, b = a[keep], b[keep]
-    key = np.unique(np.minimum(a, b) * r + np.maximum(a, b))
-    return np.stack([key // r, key % r], 1)
-
-
-def _leaf_boxes(seg: np.ndarray, n: int) -> np.ndarray:
-    """``(n, 4)`` float boxes ``x0, y0, x1, y1`` (exclusive ends) of labels ``0 .. n-1``."""
-    sl = ndi.find_objects(seg + 1, max_label=n)
-    return np.array([[s[1].start, s[0].start, s[1].stop, s[0].stop] for s in sl], np.float64)
-
-
-def _group(
-    hist: np.ndarray,
-    size: np.ndarray,
-    box: np.ndarray,
-    edges: np.ndarray,
-    similarity: str,
-    n_pixels: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Uijlings' hierarchical grouping of ``R`` initial regions.
-
-    Args:
-        hist: ``(R, 75 + 240)`` colour and texture histograms (counts).
-        size: ``(R,)`` pixel counts.
-        box: ``(R, 4)`` boxes.
-        edges: ``(E, 2)`` adjacent pairs.
-        similarity: letters of ``"ctsf"``.
-        n_pixels: image size.
-
-    Returns:
-        ``children (M, 2)`` of the merged nodes ``R .. R + M - 1``, node ``sizes`` and
-        ``boxes`` for all ``R + M`` nodes.
-    """
-    r = len(size)
-    n = 2 * r - 1
-    nc = 3 * _COLOUR_BINS
-    hc = np.zeros((n, nc))
-    ht = np.zeros((n, hist.shape[1] - nc))
-    hc[:r] = hist[:, :nc] / hist[:, :nc].sum(1, keepdims=True)
-    ht[:r] = hist[:, nc:] / hist[:, nc:].sum(1, keepdims=True)
-    sz = np.zeros(n)
-    sz[:r] = size
-    bx = np.zeros((n, 4))
-    bx[:r] = box
-    use_c, use_t, use_s, use_f = (ch in similarity for ch in "ctsf")
-
-    def sim(a: np.ndarray | int, b: np.ndarray) -> np.ndarray:
-        s = np.zeros(len(b))
-        if use_c:
-            s += np.minimum(hc[a], hc[b]).sum(-1)
-        if use_t:
-            s += np.minimum(ht[a], ht[b]).sum(-1)
-        if use_s:
-            s += 1.0 - (sz[a] + sz[b]) / n_pixels
-        if use_f:
-            lo = np.minimum(bx[a, :2], bx[b, :2])
-            hi = np.maximum(bx[a, 2:], bx[b, 2:])
-            s += 1.0 - (np.prod(hi - lo, -1) - sz[a] - sz[b]) / n_pixels
-        return s
-
-    nbrs: list[set[int]] = [set() for _ in range(r)]
-    for a, b in edges.tolist():
-        nbrs[a].add(b)
-        nbrs[b].add(a)
-    s0 = sim(edges[:, 0], edges[:, 1]) if len(edges) else np.zeros(0)
-    heap = list(zip((-s0).tolist(), edges[:, 0].tolist(), edges[:, 1].tolist(), strict=True))
-    heapq.heapify(heap)
-    alive = [True] * r
-    children = []
-    t = r
-    while heap:
-        _, a, b = heapq.heappop(heap)
-        if not (alive[a] and alive[b]):
-            continue
-        sa, sb = sz[a], sz[b]
-        sz[t] = sa + sb
-        hc[t] = (sa * hc[a] + sb * hc[b]) / sz[t]
-        ht[t] = (sa * ht[a] + sb * ht[b]) / sz[t]
-        bx[t, :2] = np.minimum(bx[a, :2], bx[b, :2])
-        bx[t, 2:] = np.maximum(bx[a, 2:], bx[b, 2:])
-        alive[a] = alive[b] = False
-        alive.append(True)
-        nb = (nbrs[a] | nbrs[b]) - {a, b}
-        for m in nb:
-            nbrs[m].discard(a)
-            nbrs[m].discard(b)
-            nbrs[m].add(t)
-        nbrs.append(nb)
-        nbrs[a] = nbrs[b] = set()
-        if nb:
-            arr = np.fromiter(nb, dtype=np.int64, count=len(nb))
-            for s, m in zip(sim(t, arr).tolist(), arr.tolist(), strict=True):
-                heapq.heappush(heap, (-s, m, t))
-        children.append((a, b))
-        t += 1
-    ch = np.array(children, dtype=np.int64).reshape(-1, 2)
-    return ch, sz[:t], bx[:t]
-
-
-def _leaf_intervals(children: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
-    """Order leaves so that every node is a contiguous range ``[lo, hi)`` of leaf positions."""
-    n = r + len(children)
-    cnt = np.ones(n, dtype=np.int64)
-    parent = np.full(n, -1, dtype=np.int64)
-    ch = children.tolist()
-    for m, (a, b) in enumerate(ch):
-        cnt[r + m] = cnt[a] + cnt[b]
-        parent[a] = parent[b] = r + m
-    lo = np.zeros(n, dtype=np.int64)
-    start = 0
-    for root in np.nonzero(parent < 0)[0].tolist():  # one root unless the graph is split
-        lo[root] = start
-        start += int(cnt[root])
-    for m in range(len(ch) - 1, -1, -1):
-        a, b = ch[m]
-        lo[a] = lo[r + m]
-        lo[b] = lo[r + m] + cnt[a]
-    return lo, lo + cnt
 
 
 def _validate(scales, colour_spaces, similarities, max_proposals, min_size, sigma) -> None:
@@ -483,18 +278,18 @@ def _search_one(
     srgb, scales, colour_spaces, similarities, seed, max_proposals, min_size, sigma
 ) -> Proposals:
     h, w, _ = srgb.shape
-    converted = {cs: _to_colour_space(srgb, cs) for cs in colour_spaces}
+    converted = {cs: to_colour_space(srgb, cs) for cs in colour_spaces}
     seg_keys = [(cs, float(k)) for cs in colour_spaces for k in scales]
     segs = []
     for cs, k in seg_keys:
         ms = int(k) if min_size is None else int(min_size)
         seg = graph_segmentation(converted[cs], scale=k, sigma=sigma, min_size=max(ms, 1))
-        segs.append(_compact(seg.reshape(-1), int(seg.max()) + 1).reshape(h, w))
-    atom_flat, rep = _atoms(segs)
+        segs.append(compact_labels(seg.reshape(-1), int(seg.max()) + 1).reshape(h, w))
+    atom_flat, rep = intersect_segmentations(segs)
     n_atoms = len(rep)
     atom_hist = {}
     for cs in colour_spaces:
-        atom_hist[cs] = _atom_histograms(converted[cs], atom_flat, n_atoms)
+        atom_hist[cs] = atom_histograms(converted[cs], atom_flat, n_atoms)
     atom_size = np.bincount(atom_flat, minlength=n_atoms)
     hash_rng = np.random.default_rng(_HASH_SEED)
     atom_hash = hash_rng.integers(0, np.iinfo(np.uint64).max, n_atoms, dtype=np.uint64)
@@ -512,13 +307,13 @@ def _search_one(
             minlength=r * nb,
         ).reshape(r, nb)
         size = np.bincount(init, weights=atom_size, minlength=r)
-        box = _leaf_boxes(seg, r)
-        edges = _adjacency(seg)
+        box = leaf_boxes(seg, r)
+        edges = adjacency(seg)
         leaf_hash = np.zeros(r, dtype=np.uint64)
         np.add.at(leaf_hash, init, atom_hash)
         for sim in similarities:
-            children, sz, bx = _group(hist, size, box, edges, sim, h * w)
-            lo, hi = _leaf_intervals(children, r)
+            children, sz, bx = group_regions(hist, size, box, edges, sim, h * w)
+            lo, hi = leaf_intervals(children, r)
             prefix = np.zeros(r + 1, dtype=np.uint64)
             prefix[1:] = np.cumsum(leaf_hash[np.argsort(lo[:r])], dtype=np.uint64)
             node_hash = prefix[hi] - prefix[lo]

@@ -79,17 +79,19 @@ def semantic_features(image: torch.Tensor, params: Parameters) -> SemanticFeatur
     from torchiid.features.midlevel import midlevel_features_batch
     from torchiid.features.patches import patch_features, patch_grid
     from torchiid.features.proposals import selective_search
-    from torchiid.priors.representatives import start_felzenszwalb_segments
+    from torchiid.features.segmentation import start_felzenszwalb_segments
     from torchiid.priors.shading_terms import shading_stencil
 
     times: dict[str, float] = {}
     image = image.contiguous()  # channels-last strides slow the per-pixel torch ops down
     b, _, h, w = image.shape
     centers = feats = sim = gpca = segs = mid = None
-    need_sc = params.stage1 and params.use_sc and params.lambda_g > 0
-    need_g = (params.stage1 and params.use_sm and params.lambda_m > 0) or (
-        params.stage2 and params.use_rm and params.gamma_m > 0
-    )
+    # Stage 0 computes what the active priors need (the weights carry the switches)
+    shading_w, refl_w = params.shading_weights(), params.reflectance_weights()
+    need_sc = shading_w.lambda_c > 0
+    need_sim = shading_w.lambda_m > 0
+    need_gpca = refl_w.gamma_m > 0
+    need_g = need_sim or need_gpca
     if need_sc:
         t0 = time.perf_counter()
         grid = patch_grid(h, w, params.patch_size, params.patch_stride)
@@ -106,7 +108,7 @@ def semantic_features(image: torch.Tensor, params: Parameters) -> SemanticFeatur
             feats = patch_mean_rgb(image, grid.boxes)
         times["patch features"] = time.perf_counter() - t0
     pool = seg_result = None
-    if params.stage2 and params.use_rg and params.gamma_g > 0:
+    if refl_w.gamma_g > 0:
         # the segments' C++ segmentation runs in a thread, overlapping the proposals
         t0 = time.perf_counter()
         pool = ThreadPoolExecutor(max_workers=1) if need_g else None
@@ -119,9 +121,9 @@ def semantic_features(image: torch.Tensor, params: Parameters) -> SemanticFeatur
             times["proposals"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             mid = midlevel_features_batch(props, like=image)
-            if params.stage1 and params.use_sm and params.lambda_m > 0:
+            if need_sim:
                 sim = mid.similarity(shading_stencil(h, w, device=image.device))
-            if params.stage2 and params.use_rm and params.gamma_m > 0:
+            if need_gpca:
                 gpca = _pca_features(mid, params.proposal_pca_dim)
             times["mid-level g"] = time.perf_counter() - t0
         if seg_result is not None:

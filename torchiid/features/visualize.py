@@ -4,7 +4,7 @@ Every function returns an ``HxWx3`` ``uint8`` **sRGB** array ready to be saved (
 ``cv2.imwrite(path, out[..., ::-1])`` or ``skimage.io.imsave``). Photos are passed in as sRGB:
 an ``HxWx3`` ``uint8`` array, an ``HxWx3`` float array in ``[0, 1]``, or a float tensor
 ``(3, H, W)`` / ``(1, 3, H, W)`` in ``[0, 1]`` (convert linear images first, e.g. with
-:func:`torchiid.features.proposals.linear_to_srgb`).
+:func:`torchiid.core.colour.linear_to_srgb`).
 """
 
 from __future__ import annotations

@@ -15,6 +15,7 @@ from torchiid.io.image import (
     save_uint8,
     srgb_to_linear,
 )
+from torchiid.io.inputs import IMAGE_SUFFIXES, collect_inputs
 from torchiid.io.layers import layer_file_names, write_layers
 
 __all__ = [
@@ -29,4 +30,6 @@ __all__ = [
     "srgb_to_linear",
     "layer_file_names",
     "write_layers",
+    "IMAGE_SUFFIXES",
+    "collect_inputs",
 ]

@@ -37,7 +37,6 @@ or TIFF, through OpenCV), float32 ``.npy``, and float32 OpenEXR (ZIP compression
 from __future__ import annotations
 
 import contextlib
-import functools
 import mmap
 import numbers
 import os
@@ -52,12 +51,12 @@ from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
 import cv2
-import kornia
 import numpy as np
 import torch
 from PIL import Image
 
 from torchiid.core.check import MIN_SIDE
+from torchiid.core.colour import decode_lut, linear_to_srgb, srgb_to_linear
 from torchiid.core.exceptions import ImageError
 
 __all__ = [
@@ -96,39 +95,6 @@ class LoadedImage:
     bit_depth: int
     linear_file: bool
     orientation: int = 1
-
-
-def srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
-    """Decode sRGB values in ``[0, 1]`` to linear RGB (the exact IEC 61966-2-1 curve).
-
-    Shape: any; ``(B, 3, H, W)`` or ``(3, H, W)`` are typical.
-    """
-    return (
-        kornia.color.rgb_to_linear_rgb(x.clamp(0, 1))
-        if x.dim() >= 3 and x.shape[-3] == 3
-        else torch.where(x <= 0.04045, x / 12.92, ((x.clamp_min(0) + 0.055) / 1.055) ** 2.4)
-    )
-
-
-def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
-    """Encode linear RGB to sRGB in ``[0, 1]`` (values are clipped to ``[0, 1]`` first)."""
-    x = x.clamp(0, 1)
-    if x.dim() >= 3 and x.shape[-3] == 3:
-        return kornia.color.linear_rgb_to_rgb(x).clamp(0, 1)
-    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.pow(1 / 2.4) - 0.055).clamp(0, 1)
-
-
-@functools.cache
-def _decode_lut(depth: int, linear: bool) -> np.ndarray:
-    """Float32 value of every 8- or 16-bit code: ``code / scale``, sRGB-decoded unless linear."""
-    n = 1 << depth
-    if linear:
-        lut = np.arange(n, dtype=np.float32) / np.float32(n - 1)
-    else:  # computed in float64 with the one sRGB curve, rounded once to float32
-        codes = torch.arange(n, dtype=torch.float64) / (n - 1)
-        lut = srgb_to_linear(codes).numpy().astype(np.float32)
-    lut.flags.writeable = False
-    return lut
 
 
 # ---------------------------------------------------------------------------------------------
@@ -541,9 +507,9 @@ def load_image(
         if depth == 32:
             np.copyto(out[i], plane, casting="same_kind")
         elif depth == 8:
-            cv2.LUT(np.ascontiguousarray(plane), _decode_lut(8, is_linear), dst=out[i])
+            cv2.LUT(np.ascontiguousarray(plane), decode_lut(8, is_linear), dst=out[i])
         else:
-            np.take(_decode_lut(16, is_linear), plane, out=out[i], mode="clip")
+            np.take(decode_lut(16, is_linear), plane, out=out[i], mode="clip")
     if len(planes) == 1:  # gray: the same values in R, G and B
         out[1] = out[0]
         out[2] = out[0]

@@ -53,6 +53,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from torchiid.core.colour import srgb8_encode_lut
 from torchiid.io.image import save_codes, save_image
 from torchiid.resample import row_bands
 
@@ -77,18 +78,6 @@ DESCRIPTIONS = {
 
 LayerFiles = dict[str, Path]
 
-_SRGB8_LUT: np.ndarray | None = None
-
-
-def _srgb8_lut() -> np.ndarray:
-    """uint8 sRGB code of every 16-bit linear code (65536 entries)."""
-    global _SRGB8_LUT
-    if _SRGB8_LUT is None:
-        x = np.arange(65536, dtype=np.float64) / 65535
-        s = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-        _SRGB8_LUT = np.clip(np.rint(s * 255), 0, 255).astype(np.uint8)
-    return _SRGB8_LUT
-
 
 def _linear16(x: torch.Tensor) -> np.ndarray:
     """``(C, h, w)`` linear values, clipped to [0, 1], as ``(h, w, C)`` uint16 codes."""
@@ -98,7 +87,7 @@ def _linear16(x: torch.Tensor) -> np.ndarray:
 
 def srgb8_from_linear(x: torch.Tensor) -> np.ndarray:
     """``(C, H, W)`` linear values (clipped to [0, 1]) as an ``(H, W, C)`` uint8 sRGB array."""
-    return _srgb8_lut()[_linear16(x)]
+    return srgb8_encode_lut()[_linear16(x)]
 
 
 def layer_file_names(
@@ -199,7 +188,7 @@ def write_layers(
         "exr",
         metadata={"shading_white": white, "convention": "torchiid albedo [0,1]"},
     )
-    r8 = _srgb8_lut()[r16]
+    r8 = srgb8_encode_lut()[r16]
     del r16
     save_codes(name("reflectance.png"), r8)
     save_codes(name("shading.png"), s8)

@@ -20,7 +20,7 @@ import torch
 
 from torchiid.core.exceptions import ShapeError
 from torchiid.priors.pairs import PairSet
-from torchiid.priors.stencil import Stencil, _shift_slices
+from torchiid.priors.stencil import Stencil, shift_slices
 
 __all__ = [
     "QuadraticTerm",
@@ -123,7 +123,7 @@ class StencilQuadratic(QuadraticTerm):
         wf[:, :k_] = self.weights
         slices = []
         for k, (dy, dx) in enumerate(self.stencil.offsets):
-            yi, xi, yj, xj = _shift_slices(dy, dx, h, w)
+            yi, xi, yj, xj = shift_slices(dy, dx, h, w)
             wf[:, k_ + k, yj, xj] = self.weights[:, k, yi, xi]
             slices.append((yi, xi, yj, xj))
         slices += [(yj, xj, yi, xi) for yi, xi, yj, xj in slices]

@@ -41,8 +41,9 @@ from functools import cached_property
 import kornia
 import torch
 
+from torchiid.core.colour import linear_to_srgb
 from torchiid.core.exceptions import ParameterError, ShapeError
-from torchiid.priors.stencil import Stencil, _shift_slices
+from torchiid.priors.stencil import Stencil, shift_slices
 
 __all__ = [
     "COLOUR_WEIGHTS",
@@ -73,7 +74,7 @@ def lab_features(
 
     The linear input is first divided by its per-image ``white_quantile`` of the channel maximum
     (when that exceeds 1; reflectance has an arbitrary scale) and clamped to ``[0, 1]``, then
-    encoded to sRGB (``kornia.color.linear_rgb_to_rgb``) and converted with
+    encoded to sRGB (:func:`torchiid.core.colour.linear_to_srgb`) and converted with
     ``kornia.color.rgb_to_lab`` (D65). Output: ``(w_L · L / s_L, a / s_a, b / s_b)``.
 
     Args:
@@ -91,7 +92,7 @@ def lab_features(
     peak = rgb.amax(dim=1).reshape(b, -1)
     k = max(1, min(peak.shape[1], round(white_quantile * peak.shape[1])))
     white = peak.kthvalue(k, dim=1).values.clamp_min(1.0).view(b, 1, 1, 1)
-    srgb = kornia.color.linear_rgb_to_rgb((rgb / white).clamp(0.0, 1.0))
+    srgb = linear_to_srgb(rgb / white)  # clamped to [0, 1] first
     lab = kornia.color.rgb_to_lab(srgb)
     scale = torch.tensor(
         [luminance_weight / lab_scale[0], 1.0 / lab_scale[1], 1.0 / lab_scale[2]],
@@ -128,7 +129,7 @@ def stencil_affinity(
     out = features.new_zeros(b, stencil.num_offsets, h, w)
     scale = -1.0 / (2.0 * t * t)
     for k, (dy, dx) in enumerate(stencil.offsets):
-        yi, xi, yj, xj = _shift_slices(dy, dx, h, w)
+        yi, xi, yj, xj = shift_slices(dy, dx, h, w)
         d = features[:, :, yi, xi] - features[:, :, yj, xj]
         v = torch.exp(d.square().sum(dim=1) * scale)
         if mask is not None:
@@ -173,7 +174,7 @@ def merged_stencil_affinity(
     sc = -1.0 / (2.0 * t * t)
     a_l, a_m = gamma_l / (gamma_l + gamma_m), gamma_m / (gamma_l + gamma_m)
     for k, (dy, dx) in enumerate(stencil.offsets):
-        yi, xi, yj, xj = _shift_slices(dy, dx, h, w)
+        yi, xi, yj, xj = shift_slices(dy, dx, h, w)
         dc = (colour[:, :, yi, xi] - colour[:, :, yj, xj]).square_().sum(dim=1)
         v = torch.mul(semantic_affinity[:, k, yi, xi], a_m).add_(a_l).mul_(dc.mul_(sc).exp_())
         if mask is not None:
@@ -284,7 +285,7 @@ class StencilL1Term(_L1Term):
     def _loop(self):
         h, w = self.stencil.height, self.stencil.width
         for k, (dy, dx) in enumerate(self.stencil.offsets):
-            yield k, _shift_slices(dy, dx, h, w)
+            yield k, shift_slices(dy, dx, h, w)
 
     def l1(self, z: torch.Tensor) -> torch.Tensor:
         """``‖diag(v) M z‖₁`` per image ``(B,)`` without materialising ``M z``."""

@@ -2,29 +2,24 @@
 
 One pixel per segment: the pixel whose colour feature ``r̄`` is closest to the segment's mean
 ``r̄`` (ties: the smallest flat index). Segments come from a label map, e.g.
-:func:`felzenszwalb_segments` (the paper uses MCG regions). :func:`global_pair_term` then links
-every pair of representatives of an image, ``|Q|(|Q|−1)/2`` pairs weighted by ``v^g``.
+:func:`torchiid.features.segmentation.felzenszwalb_segments` (the paper uses MCG regions).
+:func:`global_pair_term` then links every pair of representatives of an image,
+``|Q|(|Q|−1)/2`` pairs weighted by ``v^g``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from concurrent.futures import Executor
 from dataclasses import dataclass
 
-import kornia
-import numpy as np
 import torch
 
-from torchiid.core.check import check_image, check_shape
+from torchiid.core.check import check_shape
 from torchiid.core.exceptions import ShapeError
 from torchiid.priors.reflectance_terms import PairL1Term, pair_affinity
 
 __all__ = [
     "Representatives",
     "representative_pixels",
-    "felzenszwalb_segments",
-    "start_felzenszwalb_segments",
     "global_pair_term",
 ]
 
@@ -138,68 +133,3 @@ def global_pair_term(features: torch.Tensor, reps: Representatives, t: float) ->
     ok = (reps.valid[:, pi] & reps.valid[:, pj]).to(features.dtype)
     weights = pair_affinity(features, i, j, t) * ok
     return PairL1Term(i, j, weights, h, w)
-
-
-def felzenszwalb_segments(
-    image: torch.Tensor,
-    *,
-    linear: bool = True,
-    scale: float = 200.0,
-    sigma: float = 0.8,
-    min_size: int = 100,
-) -> torch.Tensor:
-    """Felzenszwalb–Huttenlocher superpixels per image (``graph_segmentation``).
-
-    Runs on the sRGB encoding of the image in ``[0, 1]`` (``linear=True`` converts a linear input
-    with ``kornia.color.linear_rgb_to_rgb`` after clamping). Defaults give about 150–300 segments
-    on a 512×384 photo, so ``C`` has a few ten thousand pairs.
-
-    Args:
-        image: RGB image in ``[0, 1]``, linear (default) or sRGB.
-        linear: whether ``image`` is linear RGB.
-        scale: larger values give larger segments.
-        sigma: Gaussian pre-smoothing width in pixels.
-        min_size: smallest segment in pixels (smaller ones are merged).
-
-    Shape:
-        ``(B, 3, H, W) -> (B, H, W)`` long labels from 0, on the image's device.
-    """
-    return start_felzenszwalb_segments(
-        image, linear=linear, scale=scale, sigma=sigma, min_size=min_size
-    )()
-
-
-def start_felzenszwalb_segments(
-    image: torch.Tensor,
-    *,
-    linear: bool = True,
-    scale: float = 200.0,
-    sigma: float = 0.8,
-    min_size: int = 100,
-    executor: Executor | None = None,
-) -> Callable[[], torch.Tensor]:
-    """:func:`felzenszwalb_segments` that can run in the background.
-
-    The torch part (sRGB encoding) runs now, in the calling thread; the segmentation itself
-    (OpenCV's C++, which releases the GIL) is submitted to ``executor`` when given, so it
-    overlaps whatever the caller does next. Call the returned function for the labels.
-    """
-    from torchiid.features.segmentation import graph_segmentation
-
-    check_image(image, "image")
-    srgb = image.clamp(0.0, 1.0)
-    if linear:
-        srgb = kornia.color.linear_rgb_to_rgb(srgb)
-    arr = srgb.detach().to("cpu", torch.float32).permute(0, 2, 3, 1).numpy()
-    device = image.device
-
-    def run() -> list[np.ndarray]:
-        return [graph_segmentation(a, scale=scale, sigma=sigma, min_size=min_size) for a in arr]
-
-    future = executor.submit(run) if executor is not None else None
-
-    def result() -> torch.Tensor:
-        out = future.result() if future is not None else run()
-        return torch.from_numpy(np.stack(out).astype(np.int64)).to(device)
-
-    return result

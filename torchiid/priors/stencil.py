@@ -19,7 +19,7 @@ from functools import cached_property
 
 import torch
 
-__all__ = ["half_offsets", "Stencil"]
+__all__ = ["half_offsets", "shift_slices", "Stencil"]
 
 
 def half_offsets(size: int) -> list[tuple[int, int]]:
@@ -42,8 +42,15 @@ def half_offsets(size: int) -> list[tuple[int, int]]:
     return out
 
 
-def _shift_slices(dy: int, dx: int, h: int, w: int) -> tuple[slice, slice, slice, slice]:
-    """Slices ``(ys_i, xs_i, ys_j, xs_j)`` such that ``j = i + (dy, dx)`` stays inside."""
+def shift_slices(dy: int, dx: int, h: int, w: int) -> tuple[slice, slice, slice, slice]:
+    """Slices ``(ys_i, xs_i, ys_j, xs_j)`` such that ``j = i + (dy, dx)`` stays inside.
+
+    ``x[..., ys_i, xs_i]`` are the pixels ``i`` of an ``h x w`` grid whose partner
+    ``j = i + (dy, dx)`` lies inside the grid, and ``x[..., ys_j, xs_j]`` those partners.
+
+    >>> shift_slices(1, -1, 4, 5)
+    (slice(0, 3, None), slice(1, 5, None), slice(1, 4, None), slice(0, 4, None))
+    """
     ys_i = slice(max(0, -dy), h - max(0, dy))
     xs_i = slice(max(0, -dx), w - max(0, dx))
     ys_j = slice(max(0, dy), h - max(0, -dy))
@@ -94,7 +101,7 @@ class Stencil:
             self.num_offsets, self.height, self.width, dtype=torch.bool, device=self.device
         )
         for k, (dy, dx) in enumerate(self.offsets):
-            ys_i, xs_i, _, _ = _shift_slices(dy, dx, self.height, self.width)
+            ys_i, xs_i, _, _ = shift_slices(dy, dx, self.height, self.width)
             m[k, ys_i, xs_i] = True
         return m
 
@@ -106,7 +113,7 @@ class Stencil:
         b, c, h, w = x.shape
         out = x.new_zeros(b, c, self.num_offsets, h, w)
         for k, (dy, dx) in enumerate(self.offsets):
-            ys_i, xs_i, ys_j, xs_j = _shift_slices(dy, dx, h, w)
+            ys_i, xs_i, ys_j, xs_j = shift_slices(dy, dx, h, w)
             out[:, :, k, ys_i, xs_i] = x[:, :, ys_j, xs_j]
         return out
 
@@ -121,7 +128,7 @@ class Stencil:
         d = d * self.valid.to(d.dtype)
         out = d.sum(dim=2)
         for k, (dy, dx) in enumerate(self.offsets):
-            ys_i, xs_i, ys_j, xs_j = _shift_slices(dy, dx, h, w)
+            ys_i, xs_i, ys_j, xs_j = shift_slices(dy, dx, h, w)
             out[:, :, ys_j, xs_j] -= d[:, :, k, ys_i, xs_i]
         return out
 
@@ -139,7 +146,7 @@ class Stencil:
         out = w.sum(dim=1, keepdim=True)
         h, wd = self.height, self.width
         for k, (dy, dx) in enumerate(self.offsets):
-            ys_i, xs_i, ys_j, xs_j = _shift_slices(dy, dx, h, wd)
+            ys_i, xs_i, ys_j, xs_j = shift_slices(dy, dx, h, wd)
             out[:, 0, ys_j, xs_j] += w[:, k, ys_i, xs_i]
         return out
 

@@ -64,11 +64,14 @@ from torchiid.priors.reflectance_terms import (
 from torchiid.priors.representatives import global_pair_term, representative_pixels
 from torchiid.priors.stencil import Stencil
 from torchiid.solvers.split_bregman import SplitBregmanResult, split_bregman
+from torchiid.stages.config import ReflectanceOptions, ReflectanceProblem, ReflectanceWeights
 
 __all__ = [
     "ReflectanceCache",
     "ReflectanceTimings",
     "ReflectanceResult",
+    "ReflectanceTerms",
+    "build_reflectance_terms",
     "solve_reflectance",
     "shading_from_ratio",
 ]
@@ -159,128 +162,81 @@ def shading_from_ratio(
     return image.sum(dim=1, keepdim=True) / reflectance.sum(dim=1, keepdim=True).clamp_min(eps)
 
 
-def _on(gamma: float | None) -> bool:
-    return gamma is not None and gamma > 0
+@dataclass(frozen=True)
+class ReflectanceTerms:
+    """Eq. 12's sparsity priors as built by :func:`build_reflectance_terms`.
 
-
-def solve_reflectance(
-    rho: torch.Tensor,
-    image: torch.Tensor,
-    *,
-    gpca: torch.Tensor | None = None,
-    segments: torch.Tensor | None = None,
-    mask: torch.Tensor | None = None,
-    gamma_l: float | None = 20.0,
-    gamma_m: float | None = 20.0,
-    gamma_g: float | None = 2.0,
-    gamma_a: float = 1.0,
-    theta: float = 40.0,
-    value_scale: float = 255.0,
-    t: float = 0.05,
-    t_g: float | None = None,
-    window: int = 11,
-    luminance_weight: float | None = None,
-    colour_weights: str = "bi",
-    z0: torch.Tensor | None = None,
-    tol: float = 1e-3,
-    max_outer: int = 3,
-    cg_tol: float = 1e-3,
-    cg_max_iter: int = 5,
-    merge_stencil_terms: bool = True,
-    track_objective: bool = True,
-    cache: ReflectanceCache | None = None,
-    eps: float = 1e-4,
-) -> ReflectanceResult:
-    """Reflectance formulation (Eq. 12) solved by Split-Bregman.
-
-    Args:
-        rho: intermediate reflectance ``ρ`` of the shading stage, linear RGB ``>= 0``.
-        image: the input ``I``, linear RGB.
-        gpca: PCA-reduced proposal features ``g̊`` for ``B``; ``None`` turns ``B`` off.
-        segments: segment labels for ``Q`` (e.g.
-            :func:`~torchiid.priors.representatives.felzenszwalb_segments`); ``None`` turns
-            ``C`` off.
-        mask: bool, pixels to decompose; pairs touching other pixels are dropped and
-            ``R = ρ`` there.
-        gamma_l: ``γ_l`` of ``A`` (0 or ``None``: off).
-        gamma_m: ``γ_m`` of ``B`` (0 or ``None``: off).
-        gamma_g: ``γ_g`` of ``C`` (0 or ``None``: off).
-        gamma_a: ``γ_a`` of the data term (Eq. 11).
-        theta: Split-Bregman penalty ``θ``.
-        value_scale: intensity unit the gammas and ``θ`` refer to (see module notes); the solver
-            uses ``γ_a · value_scale`` and ``θ · value_scale`` on ``[0, 1]`` values.
-        t: colour weight deviation of Eq. 7 on ``r̄``.
-        t_g: deviation for ``g̊`` in ``v^m`` (default ``t``).
-        window: side of the local window (paper: 11).
-        luminance_weight: weight of ``L`` in ``r̄`` (:func:`lab_features`); default that of
-            ``colour_weights``.
-        colour_weights: scaling of ``r̄``, a key of
-            :data:`~torchiid.priors.reflectance_terms.COLOUR_WEIGHTS`: ``"bi"`` (Bi et al.'s
-            exact weight function at ``t = 0.05``) or ``"wide"`` (5–6× wider weights).
-        z0: warm start (default ``ρ``), e.g. the previous alternation's ``R``.
-        tol: relative-change stopping threshold of the outer iterations.
-        max_outer: Bregman iteration cap.
-        cg_tol: CG tolerance of each ``z`` step.
-        cg_max_iter: CG iteration cap of each ``z`` step.
-        merge_stencil_terms: solve ``A`` and ``B`` as one exactly equivalent term.
-        track_objective: record Eq. 12's value after every Bregman iteration
-            (``solver.objective``); off saves about a fifth of the solve.
-        cache: reuse ``B``'s proposal-feature factor across calls on the same ``gpca``
-            (:class:`ReflectanceCache`) and its Bregman-state storage.
-        eps: floor of ``Σ_c R_c`` in the shading ratio.
-
-    Returns:
-        :class:`ReflectanceResult`.
-
-    Shape:
-        rho, image, z0 ``(B, 3, H, W)``; gpca ``(B, d, H, W)``; segments ``(B, H, W)`` long;
-        mask ``(B, 1, H, W)`` bool.
+    Attributes:
+        terms: name -> ``(gamma, term)`` of every active L1 term, in solver order: ``"A+B"``
+            (the merged local and mid-level term) or ``"A"`` and ``"B"``, then ``"C"``.
+        num_representatives: ``(B,)`` size of ``Q`` (0 when ``C`` is off).
+        timings: seconds for the colour features, ``A``'s, ``B``'s and ``C``'s weights.
     """
+
+    terms: dict[str, tuple[float, object]]
+    num_representatives: torch.Tensor
+    timings: tuple[float, float, float, float]
+
+
+def _check_problem(problem: ReflectanceProblem) -> None:
+    rho, image, mask = problem.rho, problem.image, problem.mask
     check_image(rho, "rho")
     check_image(image, "image")
     check_same_batch(rho, image, names=["rho", "image"])
-    # Channels-last inputs (e.g. a permuted HxWx3 array) make every per-offset slice op
-    # stride over interleaved channels, about 5x slower: work on contiguous planes.
-    rho, image = rho.contiguous(), image.contiguous()
-    z0 = None if z0 is None else z0.contiguous()
     b, _, h, w = rho.shape
-    if not t > 0 or (t_g is not None and not t_g > 0):
-        raise ParameterError(f"deviations t, t_g must be > 0, got {t}, {t_g}")
-    if any(g is not None and g < 0 for g in (gamma_l, gamma_m, gamma_g)):
-        raise ParameterError(f"gammas must be >= 0 or None, got {gamma_l}, {gamma_m}, {gamma_g}")
-    if colour_weights not in COLOUR_WEIGHTS:
-        raise ParameterError(
-            f"colour_weights must be one of {', '.join(COLOUR_WEIGHTS)}, got {colour_weights!r}"
-        )
     if mask is not None:
         check_shape(mask, (b, 1, h, w), "mask")
         if mask.dtype != torch.bool:
             raise ShapeError(f"expected a bool mask, got {mask.dtype}")
-    use_b = _on(gamma_m) and gpca is not None
-    if _on(gamma_m) and gpca is None:
-        logger.debug("gamma_m > 0 but no gpca given: mid-level term B is off")
-    if gpca is not None:
-        check_shape(gpca, (b, "d", h, w), "gpca")
-        check_finite(gpca, "gpca")
-    use_c = _on(gamma_g) and segments is not None
-    if segments is not None:
-        check_shape(segments, (b, h, w), "segments")
-    stencil = Stencil.square(h, w, window, device=rho.device)
+    if problem.gpca is not None:
+        check_shape(problem.gpca, (b, "d", h, w), "gpca")
+        check_finite(problem.gpca, "gpca")
+    if problem.segments is not None:
+        check_shape(problem.segments, (b, h, w), "segments")
 
+
+def build_reflectance_terms(
+    problem: ReflectanceProblem,
+    weights: ReflectanceWeights,
+    options: ReflectanceOptions,
+    cache: ReflectanceCache | None = None,
+) -> ReflectanceTerms:
+    """Build the sparsity priors of Eq. 12: the one place ``A``, ``B`` and ``C`` are made.
+
+    Args:
+        problem: the tensors (:class:`~torchiid.stages.config.ReflectanceProblem`); ``B`` needs
+            ``gpca`` and ``C`` needs ``segments``.
+        weights: :class:`~torchiid.stages.config.ReflectanceWeights`, 0 is off.
+        options: :class:`~torchiid.stages.config.ReflectanceOptions`.
+        cache: reuse ``B``'s proposal-feature factor and the Bregman-state storage.
+
+    Returns:
+        :class:`ReflectanceTerms`.
+    """
+    _check_problem(problem)
+    o = options
+    if o.colour_weights not in COLOUR_WEIGHTS:
+        raise ParameterError(
+            f"colour_weights must be one of {', '.join(COLOUR_WEIGHTS)}, got {o.colour_weights!r}"
+        )
+    rho, mask, gpca = problem.rho.contiguous(), problem.mask, problem.gpca
+    b, _, h, w = rho.shape
+    use_a = weights.gamma_l > 0
+    use_b = weights.gamma_m > 0 and gpca is not None
+    if weights.gamma_m > 0 and gpca is None:
+        logger.debug("gamma_m > 0 but no gpca given: mid-level term B is off")
+    use_c = weights.gamma_g > 0 and problem.segments is not None
+    stencil = Stencil.square(h, w, o.window, device=rho.device)
     t0 = time.perf_counter()
-    w_l, lab_scale = COLOUR_WEIGHTS[colour_weights]
-    rbar = lab_features(
-        rho,
-        luminance_weight=w_l if luminance_weight is None else luminance_weight,
-        lab_scale=lab_scale,
-    )
+    w_l, lab_scale = COLOUR_WEIGHTS[o.colour_weights]
+    lum = w_l if o.luminance_weight is None else o.luminance_weight
+    rbar = lab_features(rho, luminance_weight=lum, lab_scale=lab_scale)
     t1 = time.perf_counter()
-    terms: list = []
-    gammas: list[float] = []
-    t_m = t if t_g is None else t_g
+    terms: dict[str, tuple[float, object]] = {}
+    t_m = o.t_g or o.t
     e_g = None
     if use_b:
-        key = input_key(gpca, t_m, mask, rho.dtype, window)
+        key = input_key(gpca, t_m, mask, rho.dtype, o.window)
         if cache is not None and cache.semantic is not None and cache.semantic[0] == key:
             e_g = cache.semantic[1]
             cache.hits += 1
@@ -289,44 +245,85 @@ def solve_reflectance(
             if cache is not None:
                 cache.semantic = (key, e_g)
     t2 = time.perf_counter()
-    if _on(gamma_l) and use_b and merge_stencil_terms:
-        merged = merged_stencil_affinity(rbar, e_g, stencil, t, gamma_l, gamma_m, mask)
+    if use_a and use_b and o.merge_stencil_terms:
+        gl, gm = weights.gamma_l, weights.gamma_m
+        merged = merged_stencil_affinity(rbar, e_g, stencil, o.t, gl, gm, mask)
         state = None if cache is None else cache.state_buffer(rho, stencil.num_offsets)
-        terms.append(StencilL1Term(stencil, merged, zero_invalid=False, state=state))
-        gammas.append(gamma_l + gamma_m)
-    elif _on(gamma_l) or use_b:
-        v_l = stencil_affinity(rbar, stencil, t, mask)
-        if _on(gamma_l):
-            terms.append(StencilL1Term(stencil, v_l, zero_invalid=False))
-            gammas.append(float(gamma_l))
+        terms["A+B"] = (
+            float(gl + gm),
+            StencilL1Term(stencil, merged, zero_invalid=False, state=state),
+        )
+    elif use_a or use_b:
+        v_l = stencil_affinity(rbar, stencil, o.t, mask)
+        if use_a:
+            terms["A"] = (float(weights.gamma_l), StencilL1Term(stencil, v_l, zero_invalid=False))
         if use_b:
-            terms.append(StencilL1Term(stencil, e_g * v_l, zero_invalid=False))
-            gammas.append(float(gamma_m))
+            term = StencilL1Term(stencil, e_g * v_l, zero_invalid=False)
+            terms["B"] = (float(weights.gamma_m), term)
     t3 = time.perf_counter()
     nrep = torch.zeros(b, dtype=torch.long, device=rho.device)
     if use_c:
-        reps = representative_pixels(rbar, segments, mask)
-        terms.append(global_pair_term(rbar, reps, t))
-        gammas.append(float(gamma_g))
+        reps = representative_pixels(rbar, problem.segments, mask)
+        terms["C"] = (float(weights.gamma_g), global_pair_term(rbar, reps, o.t))
         nrep = reps.counts
+    t4 = time.perf_counter()
+    return ReflectanceTerms(terms, nrep, (t1 - t0, t3 - t2, t2 - t1, t4 - t3))
+
+
+def solve_reflectance(
+    problem: ReflectanceProblem,
+    weights: ReflectanceWeights,
+    options: ReflectanceOptions,
+    *,
+    z0: torch.Tensor | None = None,
+    cache: ReflectanceCache | None = None,
+) -> ReflectanceResult:
+    """Reflectance formulation (Eq. 12) solved by Split-Bregman.
+
+    Args:
+        problem: ``ρ`` (the Stage 1 reflectance), the image, ``g̊`` for ``B``, the segments
+            for ``C`` and the mask (:class:`~torchiid.stages.config.ReflectanceProblem`);
+            pairs touching pixels outside the mask are dropped and ``R = ρ`` there.
+        weights: :class:`~torchiid.stages.config.ReflectanceWeights` (``γ_l``, ``γ_m``,
+            ``γ_g``: 0 is off; ``γ_a`` of the data term).
+        options: :class:`~torchiid.stages.config.ReflectanceOptions`: the priors' constants
+            and the Split-Bregman settings.
+        z0: warm start (default ``ρ``), e.g. the previous alternation's ``R``.
+        cache: reuse ``B``'s proposal-feature factor across calls on the same ``g̊``
+            (:class:`ReflectanceCache`) and its Bregman-state storage.
+
+    Returns:
+        :class:`ReflectanceResult`.
+
+    Shape:
+        rho, image, z0 ``(B, 3, H, W)``; gpca ``(B, d, H, W)``; segments ``(B, H, W)`` long;
+        mask ``(B, 1, H, W)`` bool.
+    """
+    o = options
+    built = build_reflectance_terms(problem, weights, options, cache)
+    # Channels-last inputs (e.g. a permuted HxWx3 array) make every per-offset slice op
+    # stride over interleaved channels, about 5x slower: work on contiguous planes.
+    rho, image, mask = problem.rho.contiguous(), problem.image.contiguous(), problem.mask
+    z0 = None if z0 is None else z0.contiguous()
     t4 = time.perf_counter()
     sol = split_bregman(
         rho,
-        terms,
-        gammas,
-        gamma_a=gamma_a * value_scale,
-        theta=theta * value_scale,
+        [term for _, term in built.terms.values()],
+        [gamma for gamma, _ in built.terms.values()],
+        gamma_a=weights.gamma_a * o.value_scale,
+        theta=o.theta * o.value_scale,
         z0=z0,
-        tol=tol,
-        max_outer=max_outer,
-        cg_tol=cg_tol,
-        cg_max_iter=cg_max_iter,
-        track_objective=track_objective,
+        tol=o.tol,
+        max_outer=o.max_outer,
+        cg_tol=o.cg_tol,
+        cg_max_iter=o.cg_max_iter,
+        track_objective=o.track_objective,
     )
     t5 = time.perf_counter()
     refl = sol.z.clamp_min(0.0)
     if mask is not None:
         refl = torch.where(mask, refl, rho)
-    shading = shading_from_ratio(image, refl, eps)
-    timings = ReflectanceTimings(t1 - t0, t3 - t2, t2 - t1, t4 - t3, t5 - t4)
-    return ReflectanceResult(refl, shading, sol, nrep, timings)
+    shading = shading_from_ratio(image, refl, o.eps)
+    t_feat, t_local, t_mid, t_global = built.timings
+    timings = ReflectanceTimings(t_feat, t_local, t_mid, t_global, t5 - t4)
+    return ReflectanceResult(refl, shading, sol, built.num_representatives, timings)

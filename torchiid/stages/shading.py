@@ -1,8 +1,11 @@
 """Stage 1: the L2 shading solve (paper §3.2, Eqs. 1-5).
 
-Minimises ``Psi(s) = lambda_g (S_c + S_p) + lambda_m S_m + lambda_l S_l`` over the log-shading
-``s = log sigma`` of a batch of **linear RGB** images, as one block-diagonal sparse SPD system
-solved by batched Jacobi-preconditioned CG (:func:`torchiid.solvers.pcg.pcg`).
+Minimises ``Psi(s) = lambda_c S_c + lambda_p S_p + lambda_m S_m + lambda_l S_l`` (the paper's
+``lambda_g`` weighs both ``S_c`` and ``S_p``) over the log-shading ``s = log sigma`` of a batch of
+**linear RGB** images, as one block-diagonal sparse SPD system solved by batched
+Jacobi-preconditioned CG (:func:`torchiid.solvers.pcg.pcg`). The stage takes its tensors, weights
+and options as the three objects of :mod:`torchiid.stages.config`; :func:`build_shading_system`
+is the one place the priors are built.
 
 Normalisation. Every term annihilates constants (``S_l`` fixes ``s`` only up to a shift of
 each connected group of pixels), so a tiny anchor ``alpha * sum_i (s_i - t)^2`` over the region
@@ -50,9 +53,11 @@ from torchiid.priors.shading_terms import (
     shading_stencil,
 )
 from torchiid.solvers.pcg import pcg
+from torchiid.stages.config import ShadingOptions, ShadingProblem, ShadingWeights
 
 __all__ = [
     "ShadingDiagnostics",
+    "ShadingSystem",
     "ShadingResult",
     "ShadingSystemCache",
     "build_shading_system",
@@ -103,6 +108,23 @@ class ShadingResult:
 _MIN_COARSE = 16
 
 
+@dataclass(frozen=True)
+class ShadingSystem:
+    """Eq. 1's energy as built by :func:`build_shading_system`.
+
+    Attributes:
+        total: the weighted sum of the active priors (the solver's operator; stencil terms
+            merged into one shifted product).
+        terms: name (``"S_c"``, ``"S_p"``, ``"S_m"``, ``"S_l"``) -> ``(weight, term)`` of every
+            active prior, unweighted and unmerged.
+        times: seconds spent building each term.
+    """
+
+    total: SumQuadratic
+    terms: dict[str, tuple[float, QuadraticTerm]]
+    times: dict[str, float]
+
+
 @dataclass
 class ShadingSystemCache:
     """Terms of Eq. 1 that do not change between the alternations on one image.
@@ -124,41 +146,38 @@ class ShadingSystemCache:
     hits: int = 0
 
 
-def _coarse_inputs(
-    image: torch.Tensor,
-    centers: torch.Tensor | None,
-    similarity: torch.Tensor | None,
-    base: torch.Tensor | None,
-    mask: torch.Tensor | None,
-    base_sigma: float,
-) -> dict[str, torch.Tensor | None]:
+def _coarse_problem(problem: ShadingProblem, base_sigma: float) -> ShadingProblem:
     """Every input of the solve at half resolution (2x2 box averages).
 
     An approximation, used only to warm-start the full-resolution solve.
     """
+    image, mask = problem.image, problem.mask
     h2, w2 = image.shape[-2] // 2, image.shape[-1] // 2
 
     def down(x: torch.Tensor) -> torch.Tensor:
         return F.avg_pool2d(x[..., : 2 * h2, : 2 * w2], 2)
 
-    out: dict[str, torch.Tensor | None] = {"image": down(image)}
+    base = problem.base_image
     if base is None and base_sigma > 0:
         base = _default_base(image, mask, base_sigma)
-    out["base"] = None if base is None else down(base)
-    out["similarity"] = None if similarity is None else down(similarity)
-    out["mask"] = None
+    coarse_mask = None
     if mask is not None:
         cm = down(mask.to(image.dtype)) > 0.5
         # keep every image non-empty
-        cm = cm | (~cm.flatten(1).any(1)).view(-1, 1, 1, 1)
-        out["mask"] = cm
-    out["centers"] = None
+        coarse_mask = cm | (~cm.flatten(1).any(1)).view(-1, 1, 1, 1)
+    centers = problem.patch_centers
     if centers is not None:
-        c = torch.div(centers, 2, rounding_mode="floor")
-        c[..., 0] = c[..., 0].clamp(0, h2 - 1)
-        c[..., 1] = c[..., 1].clamp(0, w2 - 1)
-        out["centers"] = c
-    return out
+        centers = torch.div(centers, 2, rounding_mode="floor")
+        centers[..., 0] = centers[..., 0].clamp(0, h2 - 1)
+        centers[..., 1] = centers[..., 1].clamp(0, w2 - 1)
+    return ShadingProblem(
+        image=down(image),
+        patch_centers=centers,
+        patch_features=problem.patch_features,
+        similarity=None if problem.similarity is None else down(problem.similarity),
+        base_image=None if base is None else down(base),
+        mask=coarse_mask,
+    )
 
 
 def _default_base(image: torch.Tensor, mask: torch.Tensor | None, sigma: float) -> torch.Tensor:
@@ -177,42 +196,31 @@ def _sync(device: torch.device) -> None:
 
 
 def build_shading_system(
-    image: torch.Tensor,
-    *,
-    patch_centers: torch.Tensor | None = None,
-    patch_features: torch.Tensor | None = None,
-    similarity: torch.Tensor | None = None,
-    base_image: torch.Tensor | None = None,
-    mask: torch.Tensor | None = None,
-    lambda_g: float = 0.02,
-    lambda_m: float = 0.02,
-    lambda_l: float = 2.0,
-    use_sc: bool = True,
-    use_sp: bool = True,
-    t_c: float = 1e-4,
-    t_b: float = 0.05,
-    t_m: float = 0.05,
-    matting_eps: float = 1e-5,
-    dark_eps: float = 1e-4,
-    dark_level: float = 0.0,
-    clip_level: float = 0.0,
-    base_sigma: float = 1.0,
-    lle_k: int = 10,
-    lle_reg: float = 1e-3,
-    lle_neighbours: str = "knn",
-    seed: int = 0,
+    problem: ShadingProblem,
+    weights: ShadingWeights,
+    options: ShadingOptions,
     cache: ShadingSystemCache | None = None,
-) -> tuple[SumQuadratic, dict[str, float]]:
-    """Assemble ``Psi`` (Eq. 1) without the anchor; see :func:`solve_shading` for the arguments.
+) -> ShadingSystem:
+    """Assemble ``Psi`` (Eq. 1) without the anchor: the one place the shading priors are built.
+
+    Args:
+        problem: the tensors (:class:`~torchiid.stages.config.ShadingProblem`).
+        weights: one weight per prior, 0 is off (``S_c`` also needs patch centres and
+            features, ``S_m`` the similarities; ``S_p`` without a base image uses the
+            Gaussian-smoothed image).
+        options: the priors' constants.
+        cache: a :class:`ShadingSystemCache` kept across the alternations on one image.
 
     Returns:
-        ``(system, times)``: the weighted sum of the active terms and the seconds per term.
+        :class:`ShadingSystem`.
     """
+    image = problem.image
     check_image(image, "image", channels=3, min_side=3)
     given = image  # cache keys refer to the caller's tensors
     # channels-last strides (a permuted HxWx3 array) slow every shifted product down
     image = image.contiguous()
-    base_image = None if base_image is None else base_image.contiguous()
+    base_image = None if problem.base_image is None else problem.base_image.contiguous()
+    mask, o = problem.mask, options
     b, _, h, w = image.shape
     dev, dt = image.device, image.dtype
     if mask is not None:
@@ -221,10 +229,7 @@ def build_shading_system(
             raise ShapeError(f"mask must be a bool tensor, got {mask.dtype}")
         if not bool(mask.flatten(1).any(1).all()):
             raise ParameterError("mask is empty for at least one image: nothing to solve")
-    for name, lam in (("lambda_g", lambda_g), ("lambda_m", lambda_m), ("lambda_l", lambda_l)):
-        if lam < 0:
-            raise ParameterError(f"{name} must be >= 0, got {lam}")
-    terms: list[tuple[float, QuadraticTerm | None]] = []
+    terms: dict[str, tuple[float, QuadraticTerm]] = {}
     times: dict[str, float] = {}
     stencil = shading_stencil(h, w, device=dev)
 
@@ -240,160 +245,99 @@ def build_shading_system(
                 cache.terms[name] = (key, term)
         _sync(dev)
         times[name] = time.perf_counter() - t0
-        terms.append((lam, term))
+        terms[name] = (lam, term)
 
-    if use_sc and lambda_g > 0 and (patch_centers is not None or patch_features is not None):
-        if patch_centers is None or patch_features is None:
+    centers, feats = problem.patch_centers, problem.patch_features
+    if weights.lambda_c > 0 and (centers is not None or feats is not None):
+        if centers is None or feats is None:
             raise ParameterError("S_c needs both patch_centers and patch_features")
         timed(
             "S_c",
-            lambda_g,
+            weights.lambda_c,
             lambda: lle_term(
-                patch_centers.to(dev),
-                patch_features.to(device=dev, dtype=dt),
+                centers.to(dev),
+                feats.to(device=dev, dtype=dt),
                 h,
                 w,
-                k=lle_k,
-                reg=lle_reg,
-                neighbours=lle_neighbours,
+                k=o.lle_k,
+                reg=o.lle_reg,
+                neighbours=o.lle_neighbours,
                 mask=mask,
-                seed=seed,
+                seed=o.seed,
             ),
             input_key(
-                patch_centers,
-                patch_features,
-                h,
-                w,
-                lle_k,
-                lle_reg,
-                lle_neighbours,
-                mask,
-                seed,
-                dt,
-                dev,
+                centers, feats, h, w, o.lle_k, o.lle_reg, o.lle_neighbours, mask, o.seed, dt, dev
             ),
         )
-    if use_sp and lambda_g > 0:
+    if weights.lambda_p > 0:
         if base_image is not None:
             check_image(base_image, "base_image", channels=3, nonnegative=False)
             check_shape(base_image, (b, 3, h, w), "base_image")
         timed(
             "S_p",
-            lambda_g,
+            weights.lambda_p,
             lambda: matting_laplacian(
-                _default_base(image, mask, base_sigma) if base_image is None else base_image.to(dt),
-                eps=matting_eps,
+                _default_base(image, mask, o.base_sigma)
+                if base_image is None
+                else base_image.to(dt),
+                eps=o.matting_eps,
                 mask=mask,
             ).as_stencil(),
         )
-    if similarity is not None and lambda_m > 0:
+    if problem.similarity is not None and weights.lambda_m > 0:
+        sim = problem.similarity
         timed(
             "S_m",
-            lambda_m,
-            lambda: midlevel_term(similarity.to(dt), stencil, t_m, mask),
-            input_key(similarity, t_m, mask, dt),
+            weights.lambda_m,
+            lambda: midlevel_term(sim.to(dt), stencil, o.t_m, mask),
+            input_key(sim, o.t_m, mask, dt),
         )
-    if lambda_l > 0:
+    if weights.lambda_l > 0:
+        confident = o.dark_level > 0 or o.clip_level > 0
         timed(
             "S_l",
-            lambda_l,
+            weights.lambda_l,
             lambda: retinex_term(
                 image,
                 stencil,
-                t_c,
-                t_b,
-                dark_eps,
+                o.t_c,
+                o.t_b,
+                o.dark_eps,
                 mask,
                 confidence=(
-                    pixel_confidence(image, dark_level, clip_level)
-                    if dark_level > 0 or clip_level > 0
-                    else None
+                    pixel_confidence(image, o.dark_level, o.clip_level) if confident else None
                 ),
             ),
-            input_key(given, t_c, t_b, dark_eps, dark_level, clip_level, mask),
+            input_key(given, o.t_c, o.t_b, o.dark_eps, o.dark_level, o.clip_level, mask),
         )
     if not terms:
         raise ParameterError("every shading term is switched off; enable at least one")
-    return SumQuadratic(terms), times
+    return ShadingSystem(SumQuadratic(list(terms.values())), terms, times)
 
 
 def solve_shading(
-    image: torch.Tensor,
+    problem: ShadingProblem,
+    weights: ShadingWeights,
+    options: ShadingOptions,
     *,
-    patch_centers: torch.Tensor | None = None,
-    patch_features: torch.Tensor | None = None,
-    similarity: torch.Tensor | None = None,
-    base_image: torch.Tensor | None = None,
-    mask: torch.Tensor | None = None,
-    lambda_g: float = 0.02,
-    lambda_m: float = 0.02,
-    lambda_l: float = 2.0,
-    use_sc: bool = True,
-    use_sp: bool = True,
-    t_c: float = 1e-4,
-    t_b: float = 0.05,
-    t_m: float = 0.05,
-    matting_eps: float = 1e-5,
-    dark_eps: float = 1e-4,
-    dark_level: float = 0.0,
-    clip_level: float = 0.0,
-    base_sigma: float = 1.0,
-    lle_k: int = 10,
-    lle_reg: float = 1e-3,
-    lle_neighbours: str = "knn",
-    seed: int = 0,
-    anchor: float = 1e-8,
     x0: torch.Tensor | None = None,
-    tol: float = 1e-4,
-    max_iter: int = 300,
-    warn: bool = True,
-    levels: int = 5,
-    coarse_max_iter: int | None = None,
     cache: ShadingSystemCache | None = None,
 ) -> ShadingResult:
     """Solve the shading energy of Eq. 1 for ``s = log sigma``; ``rho = I / sigma``.
 
     Args:
-        image: ``(B, 3, H, W)`` linear RGB, ``>= 0``.
-        patch_centers: ``(P, 2)`` or ``(B, P, 2)`` integer ``(y, x)`` patch centres (``S_c``).
-        patch_features: ``(B, P, D)`` patch features ``f_b`` (or mean RGB for strategies
-            p1/p2); ``S_c`` is off when centres/features are ``None``.
-        similarity: ``(B, 4, H, W)`` proposal similarities ``<g_i, g_j>`` on the 3x3 stencil
-            (:func:`~torchiid.priors.shading_terms.shading_stencil`); ``S_m`` is off when
-            ``None``.
-        base_image: ``(B, 3, H, W)`` linear RGB base of the matting Laplacian ``S_p`` (the
-            previous reflectance); ``None`` uses the Gaussian-smoothed image (``base_sigma``).
-        mask: optional ``(B, 1, H, W)`` bool region to decompose (see the module notes).
-        lambda_g: weight of ``S_c + S_p`` (paper 0.02); 0 turns both off.
-        lambda_m: weight of ``S_m`` (paper 0.02).
-        lambda_l: weight of ``S_l`` (paper 2).
-        use_sc: switch for ``S_c``.
-        use_sp: switch for ``S_p``.
-        t_c: chromaticity deviation of ``S_l`` (paper 1e-4, nearly binary).
-        t_b: dark-pixel deviation of ``S_l`` (paper 0.05).
-        t_m: deviation of ``S_m`` (paper 0.05).
-        matting_eps: Levin's epsilon (1e-5).
-        dark_eps: floor of intensities before logs; ``rho`` uses ``I`` unclamped.
-        dark_level: with ``clip_level``, the pixel confidence of ``S_l``
-            (:func:`~torchiid.priors.shading_terms.pixel_confidence`): dark and clipped
-            pixels get smooth shading instead of noise. Both 0 (default here): off.
-        clip_level: see ``dark_level``.
-        base_sigma: Gaussian sigma (px) of the default base image.
-        lle_k: LLE neighbours (10).
-        lle_reg: LLE Gram regulariser (1e-3).
-        lle_neighbours: ``"knn"`` or ``"random"`` (paper Table 2).
-        seed: seed of random LLE neighbours.
-        anchor: anchor weight relative to the mean diagonal of ``Psi``.
-        x0: ``(B, 1, H, W)`` warm start of ``s`` (e.g. the previous iteration's).
-        tol: PCG relative-residual tolerance.
-        max_iter: PCG iteration cap.
-        warn: emit ``ConvergenceWarning`` when ``tol`` is missed.
-        levels: coarse-to-fine levels. With ``levels > 1`` (and no ``x0``) the problem is
-            first solved on a 2x box-downsampled copy of every input (recursively), and the
-            bilinearly upsampled coarse ``s`` warm-starts the full-resolution solve
-            ("cascadic" CG). The answer is the full-resolution minimiser either way; only the
-            iteration count changes.
-        coarse_max_iter: PCG iteration cap on the coarse levels (default ``max_iter``).
+        problem: the tensors (:class:`~torchiid.stages.config.ShadingProblem`): the image,
+            Stage 0's patch features and proposal similarities, the matting base image
+            (the previous reflectance) and the mask (see the module notes).
+        weights: :class:`~torchiid.stages.config.ShadingWeights`, 0 switches a prior off.
+        options: :class:`~torchiid.stages.config.ShadingOptions`: the priors' constants and
+            the PCG settings.
+        x0: ``(B, 1, H, W)`` warm start of ``s`` (e.g. the previous iteration's); the solve
+            then runs at most ``options.warm_max_iter`` iterations (0: ``max_iter``). Without
+            it and with ``options.levels > 1`` the problem is first solved on a 2x
+            box-downsampled copy of every input (recursively) and the bilinearly upsampled
+            coarse ``s`` warm-starts the full-resolution solve ("cascadic" CG). The answer
+            is the full-resolution minimiser either way; only the iteration count changes.
         cache: a :class:`ShadingSystemCache` kept across the alternations on one image:
             ``S_c``, ``S_m`` and ``S_l`` are then built once (same result, less time).
 
@@ -407,26 +351,19 @@ def solve_shading(
         image ``(B, 3, H, W)`` -> log_shading, shading ``(B, 1, H, W)``;
         reflectance ``(B, 3, H, W)``.
     """
-    if anchor <= 0:
-        raise ParameterError(f"anchor must be > 0, got {anchor}")
-    system, times = build_shading_system(
-        image, patch_centers=patch_centers, patch_features=patch_features,
-        similarity=similarity, base_image=base_image, mask=mask, lambda_g=lambda_g,
-        lambda_m=lambda_m, lambda_l=lambda_l, use_sc=use_sc, use_sp=use_sp, t_c=t_c, t_b=t_b,
-        t_m=t_m, matting_eps=matting_eps, dark_eps=dark_eps, dark_level=dark_level,
-        clip_level=clip_level, base_sigma=base_sigma, lle_k=lle_k, lle_reg=lle_reg,
-        lle_neighbours=lle_neighbours, seed=seed, cache=cache,
-    )  # fmt: skip
-    image = image.contiguous()
+    o = options
+    built = build_shading_system(problem, weights, options, cache)
+    system, times = built.total, dict(built.times)
+    image, mask = problem.image.contiguous(), problem.mask
     b, _, h, w = image.shape
     dev, dt = image.device, image.dtype
     m = torch.ones(b, 1, h, w, dtype=dt, device=dev) if mask is None else mask.to(dt)
     area = m.flatten(1).sum(1).view(b, 1, 1, 1)
-    logp = intensity(image, dark_eps).log()
+    logp = intensity(image, o.dark_eps).log()
     target = (logp * m).flatten(1).sum(1).view(b, 1, 1, 1) / area
     diag = system.diagonal() * m
-    alpha = anchor * diag.flatten(1).sum(1).view(b, 1, 1, 1) / area
-    alpha = torch.where(alpha > 0, alpha, torch.full_like(alpha, anchor))
+    alpha = o.anchor * diag.flatten(1).sum(1).view(b, 1, 1, 1) / area
+    alpha = torch.where(alpha > 0, alpha, torch.full_like(alpha, o.anchor))
     rhs = (system.rhs() + alpha * target) * m
     pinned = 1 - m
 
@@ -438,19 +375,15 @@ def solve_shading(
         return system.matvec(m * x).mul_(m).addcmul_(extra, x)
 
     precond = 1 / (diag + alpha * m + pinned)
-    if x0 is None and levels > 1 and min(h, w) >= 2 * _MIN_COARSE:
-        coarse = _coarse_inputs(image, patch_centers, similarity, base_image, mask, base_sigma)
+    max_iter = o.max_iter
+    if x0 is not None:
+        max_iter = o.warm_max_iter or o.max_iter
+    elif o.levels > 1 and min(h, w) >= 2 * _MIN_COARSE:
         sub = solve_shading(
-            coarse["image"], patch_centers=coarse["centers"], patch_features=patch_features,
-            similarity=coarse["similarity"], base_image=coarse["base"], mask=coarse["mask"],
-            lambda_g=lambda_g, lambda_m=lambda_m, lambda_l=lambda_l, use_sc=use_sc,
-            use_sp=use_sp, t_c=t_c, t_b=t_b, t_m=t_m, matting_eps=matting_eps,
-            dark_eps=dark_eps, dark_level=dark_level, clip_level=clip_level,
-            base_sigma=base_sigma / 2, lle_k=lle_k, lle_reg=lle_reg,
-            lle_neighbours=lle_neighbours, seed=seed, anchor=anchor, tol=tol,
-            max_iter=max_iter if coarse_max_iter is None else coarse_max_iter, warn=False,
-            levels=levels - 1, coarse_max_iter=coarse_max_iter,
-        )  # fmt: skip
+            _coarse_problem(problem, o.base_sigma),
+            weights,
+            o.replace(base_sigma=o.base_sigma / 2, levels=o.levels - 1, warn=False),
+        )
         x0 = F.interpolate(sub.log_shading, size=(h, w), mode="bilinear", align_corners=False)
         times["coarse"] = sum(sub.diagnostics.times.values())
     if x0 is None:
@@ -460,22 +393,22 @@ def solve_shading(
         check_finite(x0, "x0")
         start = x0.to(dt) * m
     t0 = time.perf_counter()
-    res = pcg(matvec, rhs, x0=start, precond=precond, tol=tol, max_iter=max_iter, warn=False)
+    res = pcg(matvec, rhs, x0=start, precond=precond, tol=o.tol, max_iter=max_iter, warn=False)
     _sync(dev)
     times["solve"] = time.perf_counter() - t0
     s = res.x * m
     s = s + (target - (s * m).flatten(1).sum(1).view(b, 1, 1, 1) / area) * m
-    if warn and not res.converged:
+    if o.warn and not res.converged:
         warnings.warn(
             f"shading PCG stopped after {res.iterations} iterations with relative residual "
-            f"{float(res.residual.max()):.3g} > tol {tol:g}; raise max_iter or warm-start",
+            f"{float(res.residual.max()):.3g} > tol {o.tol:g}; raise max_iter or warm-start",
             ConvergenceWarning,
             stacklevel=2,
         )
     logger.debug("shading solve: %d iterations, residual %s", res.iterations, res.residual)
     # where the shading underflows (a solve pulled by dark pixels) rho = I / sigma would
     # overflow; sigma >= dark_eps^2 keeps rho finite (<= 1 / dark_eps^2 for I <= 1)
-    shading = torch.exp(s).clamp_min(dark_eps * dark_eps)
+    shading = torch.exp(s).clamp_min(o.dark_eps * o.dark_eps)
     reflectance = image / shading
     names = tuple(k for k in times if k not in ("solve", "coarse"))
     diagnostics = ShadingDiagnostics(
