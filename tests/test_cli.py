@@ -264,12 +264,3 @@ def test_export_onnx_takes_output_like_the_other_subcommands(tmp_path, monkeypat
     assert main(["export-onnx", "-o", str(tmp_path)]) == 0
     assert written == [tmp_path]
     assert f"wrote {tmp_path / 'm.onnx'}" in capsys.readouterr().out
-
-
-def test_library_functions_stay_importable_from_the_cli():
-    from torchiid import cli
-    from torchiid.core.device import resolve_device
-    from torchiid.io.inputs import IMAGE_SUFFIXES, collect_inputs
-
-    assert cli.resolve_device is resolve_device
-    assert cli.collect_inputs is collect_inputs and cli.IMAGE_SUFFIXES is IMAGE_SUFFIXES

@@ -15,15 +15,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from torchiid.commands.decompose import add_parameter_options
-from torchiid.core.device import resolve_device as resolve_device
 from torchiid.core.exceptions import TorchiidError
-from torchiid.io.inputs import IMAGE_SUFFIXES as IMAGE_SUFFIXES
-from torchiid.io.inputs import collect_inputs as collect_inputs
 
 __all__ = ["main", "build_parser"]
 
-# ``resolve_device`` (torchiid.core.device), ``collect_inputs`` and ``IMAGE_SUFFIXES``
-# (torchiid.io.inputs) are library functions; they stay importable from here for old callers.
 log = logging.getLogger("torchiid")
 
 
