@@ -1,7 +1,12 @@
 """Baseline intrinsic-image methods used for comparison (colour Retinex, trivial references)."""
 
 from torchiid.baselines.result import BaselineResult
-from torchiid.baselines.retinex import ColorRetinex, RetinexResult, color_retinex
+from torchiid.baselines.retinex import (
+    ColorRetinex,
+    RetinexResult,
+    color_retinex,
+    retinex_decomposition,
+)
 from torchiid.baselines.trivial import reflectance_is_image, shading_is_image
 
 __all__ = [
@@ -9,6 +14,7 @@ __all__ = [
     "ColorRetinex",
     "RetinexResult",
     "color_retinex",
+    "retinex_decomposition",
     "reflectance_is_image",
     "shading_is_image",
 ]

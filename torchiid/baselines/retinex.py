@@ -39,9 +39,11 @@ import torch
 from torchiid.baselines.result import BaselineResult
 from torchiid.core.check import as_mask, check_image
 from torchiid.core.exceptions import ParameterError
+from torchiid.model import Decomposition, full_resolution_layers
+from torchiid.params import Parameters
 from torchiid.solvers.pcg import pcg
 
-__all__ = ["color_retinex", "ColorRetinex", "RetinexResult"]
+__all__ = ["color_retinex", "ColorRetinex", "RetinexResult", "retinex_decomposition"]
 
 logger = logging.getLogger(__name__)
 
@@ -198,3 +200,52 @@ class ColorRetinex(torch.nn.Module):
     def forward(self, image: torch.Tensor, mask: torch.Tensor | None = None) -> RetinexResult:
         """See :func:`color_retinex`."""
         return color_retinex(image, mask, self.threshold_gray, self.threshold_color)
+
+
+def retinex_decomposition(
+    image: torch.Tensor,
+    params: Parameters | None = None,
+    *,
+    mask: torch.Tensor | None = None,
+    threshold_gray: float = 0.075,
+    threshold_color: float = 1.0,
+) -> Decomposition:
+    """Colour Retinex in the output convention of :func:`torchiid.decompose`.
+
+    The shading of :func:`color_retinex` goes through
+    :func:`~torchiid.model.full_resolution_layers`, so the reflectance is an albedo in
+    ``[0, 1]`` and ``shading_white`` is set, like the method's result (what
+    ``torchiid decompose --method retinex`` writes).
+
+    Args:
+        image: ``(B, 3, H, W)`` linear RGB.
+        params: supplies the output convention (``albedo_quantile``, ``view_quantile``,
+            ``shading_floor``); default ``Parameters()``.
+        mask: optional mask, nonzero inside.
+        threshold_gray: see :func:`color_retinex`.
+        threshold_color: see :func:`color_retinex`.
+
+    Returns:
+        :class:`~torchiid.model.Decomposition` without Stage 1 layers or iterations.
+    """
+    params = params if params is not None else Parameters()
+    if mask is not None:
+        mask = as_mask(mask, image, "mask")
+    shading = color_retinex(
+        image, mask, threshold_gray=threshold_gray, threshold_color=threshold_color
+    ).shading
+    layers = full_resolution_layers(
+        image, shading.clamp_min(params.shading_floor), None, mask, params
+    )
+    return Decomposition(
+        reflectance=layers.reflectance,
+        shading=layers.shading,
+        sigma=None,
+        rho=None,
+        iterations=(),
+        params=params,
+        mask=mask,
+        shading_white=layers.shading_white,
+        albedo_excess=layers.albedo_excess,
+        working_size=tuple(image.shape[-2:]),
+    )

@@ -8,15 +8,16 @@ import logging
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import torch
 
+from torchiid.baselines.retinex import retinex_decomposition
 from torchiid.core.device import resolve_device
 from torchiid.core.exceptions import ParameterError, TorchiidError
 from torchiid.io import load_image, load_mask, save_image
 from torchiid.io.inputs import collect_inputs
 from torchiid.io.layers import layer_file_names, write_layers
+from torchiid.model import decompose
 from torchiid.params import Parameters
 from torchiid.priors.shading_terms import pixel_confidence
 
@@ -109,29 +110,10 @@ def _write_outputs(
                 save_image(out / f"{stem}-iter{k}-{name}.png", x, "srgb8")
 
 
-def _retinex(batch: torch.Tensor, mask: torch.Tensor | None, params: Parameters):
-    """Colour Retinex in the same output convention as the method."""
-    from torchiid.baselines.retinex import color_retinex
-    from torchiid.model import full_resolution_layers
-
-    shad = color_retinex(batch, mask=mask, **RETINEX_DEFAULTS).shading
-    layers = full_resolution_layers(batch, shad.clamp_min(1e-4), None, mask, params)
-    return SimpleNamespace(
-        reflectance=layers.reflectance,
-        shading=layers.shading,
-        shading_white=layers.shading_white,
-        albedo_excess=layers.albedo_excess,
-        working_size=tuple(batch.shape[-2:]),
-        mask=mask,
-        iterations=(),
-    )
-
-
 def run_decompose(args: argparse.Namespace) -> int:
     """Run the ``decompose`` subcommand; returns the exit status."""
     from tqdm import tqdm
 
-    from torchiid.model import decompose
 
     params = params_from_args(args)
     device = resolve_device(args.device)
@@ -169,7 +151,7 @@ def run_decompose(args: argparse.Namespace) -> int:
             batch = image[None].to(device)
             mbatch = mask[None].to(device) if mask is not None else None
             if args.method == "retinex":
-                result = _retinex(batch, mbatch, params)
+                result = retinex_decomposition(batch, params, mask=mbatch, **RETINEX_DEFAULTS)
             else:
                 it_bar = tqdm(
                     total=params.iterations,
