@@ -200,6 +200,7 @@ def test_output_files_keep_the_convention_users_rely_on(tmp_path):
     img = load_image(src).image.permute(1, 2, 0).numpy()
     info = json.loads((out / "coffee-info.json").read_text())
     white = info["shading_white"]
+    assert len(info["solves"]) == 4 and isinstance(info["converged"], bool)
     assert info["size"] == [180, 120] and 0 <= info["albedo_excess"] <= 0.001 + 1 / (180 * 120)
     assert set(info["files"]) >= {"coffee-shading.exr", "coffee-reflectance-linear16.png"}
     # exact pair: 16-bit linear reflectance (not clipped) and float OpenEXR shading

@@ -191,3 +191,23 @@ def test_numeric_masks_mean_nonzero_inside_like_everywhere():
     as_bool = decompose(s.image, FAST, mask=mask)
     as_float = decompose(s.image, FAST, mask=mask.float()[0, 0] * 0.7)  # (H, W), nonzero inside
     assert torch.equal(as_bool.reflectance, as_float.reflectance)
+
+
+def test_every_solve_is_reported_with_its_convergence():
+    img = mondrian(64, 64, seed=1).image
+    capped = decompose(img, FAST.replace(cg_max_iter=5, warm_cg_max_iter=3))
+    assert [(r.stage, r.alternation) for r in capped.solves] == [
+        ("shading", 1),
+        ("reflectance", 1),
+        ("shading", 2),
+        ("reflectance", 2),
+    ]
+    first, warm = capped.solves[0], capped.solves[2]
+    assert (first.cap, warm.cap) == (5, 3) and first.iterations == 5 and not first.converged
+    assert first.residual > first.tolerance and not capped.converged
+    assert "stopped at its cap of 5" in str(first)
+    # generous caps: the shading solves reach their tolerance
+    loose = decompose(img, FAST.replace(cg_max_iter=3000, warm_cg_max_iter=0, cg_tol=1e-3))
+    for r in loose.solves:
+        if r.stage == "shading":
+            assert r.converged and r.residual <= 1e-3 and r.iterations < 3000

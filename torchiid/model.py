@@ -39,6 +39,7 @@ from torchiid.stages.shading import ShadingSystemCache, solve_shading
 
 __all__ = [
     "Decomposition",
+    "SolveReport",
     "FullLayers",
     "IterationLayers",
     "decompose",
@@ -68,6 +69,39 @@ class IterationLayers:
 
 
 @dataclass(frozen=True)
+class SolveReport:
+    """What one stage's solver did in one alternation (the batch's worst image).
+
+    Attributes:
+        stage: ``"shading"`` (PCG on Eq. 1) or ``"reflectance"`` (Split-Bregman on Eq. 12).
+        alternation: 1-based alternation.
+        iterations: PCG iterations (shading) or outer Bregman iterations (reflectance).
+        inner_iterations: CG iterations of all ``z`` steps (reflectance; 0 for shading).
+        residual: final relative residual ``‖b − A s‖ / ‖b‖`` (shading) or last relative change
+            of ``z`` (reflectance).
+        tolerance: the stopping tolerance of that measure.
+        cap: the iteration cap (PCG iterations or Bregman iterations).
+        converged: the measure fell below the tolerance before the cap.
+    """
+
+    stage: str
+    alternation: int
+    iterations: int
+    inner_iterations: int
+    residual: float
+    tolerance: float
+    cap: int
+    converged: bool
+
+    def __str__(self) -> str:
+        state = "converged" if self.converged else f"stopped at its cap of {self.cap}"
+        return (
+            f"{self.stage} {self.alternation}: {self.iterations} iterations, "
+            f"residual {self.residual:.2g} (tol {self.tolerance:g}), {state}"
+        )
+
+
+@dataclass(frozen=True)
 class Decomposition:
     """Result of :func:`decompose`; every layer is **linear** RGB / gray.
 
@@ -93,6 +127,7 @@ class Decomposition:
             exceeded 1 and had the excess moved into the shading (at most
             ``1 - albedo_quantile`` by construction).
         working_size: ``(h, w)`` the resolution the method ran at.
+        solves: one :class:`SolveReport` per stage and alternation.
     """
 
     reflectance: torch.Tensor
@@ -106,6 +141,12 @@ class Decomposition:
     shading_white: torch.Tensor | None = None
     albedo_excess: torch.Tensor | None = None
     working_size: tuple[int, int] | None = None
+    solves: tuple[SolveReport, ...] = ()
+
+    @property
+    def converged(self) -> bool:
+        """Whether every solve reached its tolerance."""
+        return all(r.converged for r in self.solves)
 
 
 def _gray_shading(image: torch.Tensor, refl: torch.Tensor, floor: float) -> torch.Tensor:
@@ -236,6 +277,7 @@ def decompose(
     shading_cache = ShadingSystemCache()  # S_c, S_m, S_l are built once per image
     reflectance_cache = ReflectanceCache()  # and B's proposal-feature factor
     layers: list[IterationLayers] = []
+    solves: list[SolveReport] = []
     for k in range(1, params.iterations + 1):
         t0 = time.perf_counter()
         if shading_w.active:
@@ -248,6 +290,16 @@ def decompose(
                 mask=msk,
             )
             sh = solve_shading(problem, shading_w, shading_opt, x0=s_prev, cache=shading_cache)
+            d = sh.diagnostics
+            cap = shading_opt.max_iter
+            if s_prev is not None:
+                cap = shading_opt.warm_max_iter or shading_opt.max_iter
+            solves.append(
+                SolveReport(
+                    "shading", k, d.iterations, 0, float(d.residual.max()), shading_opt.tol, cap,
+                    d.converged,
+                )
+            )  # fmt: skip
             s_prev = sh.log_shading
             sigma, rho = sh.shading, sh.reflectance
         else:
@@ -266,6 +318,14 @@ def decompose(
             )
             rr = solve_reflectance(problem, refl_w, refl_opt, z0=r_prev, cache=reflectance_cache)
             refl = rr.reflectance
+            sb = rr.solver
+            solves.append(
+                SolveReport(
+                    "reflectance", k, int(sb.outer_iterations.max()), sb.cg_iterations,
+                    float(sb.change.max()), refl_opt.tol, refl_opt.max_outer,
+                    bool(sb.converged.all()),
+                )
+            )  # fmt: skip
         else:
             refl = rho
         times[f"reflectance {k}"] = time.perf_counter() - t0
@@ -310,6 +370,7 @@ def decompose(
         shading_white=final.shading_white,
         albedo_excess=final.albedo_excess,
         working_size=(h, w),
+        solves=tuple(solves),
     )
 
 

@@ -86,6 +86,8 @@ def _write_outputs(
         "albedo_quantile": params.albedo_quantile,
         "albedo_excess": float(result.albedo_excess[0]),
         "seconds": round(seconds, 3),
+        "converged": result.converged,
+        "solves": [str(r) for r in result.solves],
     }
     write_layers(
         out,
@@ -113,7 +115,6 @@ def _write_outputs(
 def run_decompose(args: argparse.Namespace) -> int:
     """Run the ``decompose`` subcommand; returns the exit status."""
     from tqdm import tqdm
-
 
     params = params_from_args(args)
     device = resolve_device(args.device)
@@ -179,6 +180,17 @@ def run_decompose(args: argparse.Namespace) -> int:
                     it_bar.close()
             seconds = time.perf_counter() - t0
             _write_outputs(out, stem, loaded, result, args, params, args.method, seconds)
+            capped = [r for r in result.solves if not r.converged]
+            if capped:
+                worst = max(capped, key=lambda r: r.residual / r.tolerance)
+                note = (
+                    f"torchiid: note: {path}: {len(capped)} of {len(result.solves)} solves "
+                    f"stopped at their iteration caps (worst: {worst}); see {stem}-info.json"
+                )
+                if show:
+                    tqdm.write(note, file=sys.stderr)
+                else:
+                    print(note, file=sys.stderr)
             done = f"{path} -> {out}/{stem}-* ({time.perf_counter() - t0:.1f} s)"
             if show:
                 tqdm.write(done, file=sys.stderr)
