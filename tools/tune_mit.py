@@ -1,0 +1,56 @@
+"""Score parameter changes on the MIT-Berkeley objects, one JSON line per parameter set.
+
+Each argument is a JSON object of changes over ``Parameters()``; every object is decomposed
+(``diffuse.png`` under ``mask.png``) and scored with the MIT LMSE. Prints the mean, the seconds
+and the per-object scores, for tuning the energy with one parameter set for all images.
+
+    python tools/tune_mit.py ../shared/data/mit-berkeley '{}' '{"lambda_l": 1.0}'
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from torchiid.eval import mit_lmse
+from torchiid.io import load_image, load_mask
+from torchiid.model import decompose
+from torchiid.params import Parameters
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("root", type=Path, help="the MIT-Berkeley folder")
+    ap.add_argument("changes", nargs="+", help="JSON objects of parameter changes")
+    args = ap.parse_args()
+    objects = sorted(p.name for p in args.root.iterdir() if (p / "diffuse.png").is_file())
+    samples = {}
+    for name in objects:
+        d = args.root / name
+        image = load_image(d / "diffuse.png", linear=True).image[None]
+        mask = load_mask(d / "mask.png")[None]
+        refl = load_image(d / "reflectance.png", linear=True).image[None]
+        shading = load_image(d / "shading.png", linear=True).image[None].mean(1, keepdim=True)
+        samples[name] = (image, mask, refl, shading)
+    for text in args.changes:
+        changes = json.loads(text)
+        params = Parameters().replace(**changes)
+        t0 = time.perf_counter()
+        rows = {}
+        for name, (image, mask, refl, shading) in samples.items():
+            out = decompose(image, params, mask=mask)
+            rows[name] = float(mit_lmse(refl, shading, out.reflectance, out.shading, mask)[0])
+        mean = sum(rows.values()) / len(rows)
+        record = {
+            "changes": changes,
+            "mean": round(mean, 5),
+            "seconds": round(time.perf_counter() - t0, 1),
+            "objects": {k: round(v, 5) for k, v in rows.items()},
+        }
+        print(json.dumps(record), flush=True)
+
+
+if __name__ == "__main__":
+    main()
