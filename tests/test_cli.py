@@ -265,3 +265,31 @@ def test_export_onnx_takes_output_like_the_other_subcommands(tmp_path, monkeypat
     assert main(["export-onnx", "-o", str(tmp_path)]) == 0
     assert written == [tmp_path]
     assert f"wrote {tmp_path / 'm.onnx'}" in capsys.readouterr().out
+
+
+def test_retinex_output_follows_the_readme_convention(photos, tmp_path):
+    """--method retinex: R is an albedo in [0, 1] (99.9th percentile of max_c R_c is 1),
+    R * S == I, shading_white is the shading's 99th percentile, like the method's output."""
+    out = tmp_path / "out"
+    argv = ["decompose", str(photos / "cat.png"), "-o", str(out), "--method", "retinex"]
+    assert main([*argv, "--save-npy", "--no-progress"]) == 0
+    from torchiid.io import load_image
+
+    img = load_image(photos / "cat.png").image.permute(1, 2, 0).numpy()
+    r, s = np.load(out / "cat-reflectance.npy"), np.load(out / "cat-shading.npy")
+    info = json.loads((out / "cat-info.json").read_text())
+    assert info["method"] == "retinex" and r.max() <= 1
+    assert (s >= img.max(axis=2) - 1e-6).all()  # R <= 1, so S >= max_c I_c
+    assert np.quantile(r.max(axis=2), 0.999) == pytest.approx(1, abs=2e-3)
+    assert np.allclose(r * s[..., None], img, atol=1e-5)
+    assert info["shading_white"] == pytest.approx(np.quantile(s, 0.99), rel=1e-2)
+    s8 = cv2.imread(str(out / "cat-shading.png"), cv2.IMREAD_UNCHANGED)
+    assert np.quantile(s8, 0.99) >= 254  # shading / shading_white: the 99th percentile is white
+
+
+def test_error_lines_go_above_the_progress_bar(photos, tmp_path, capsys):
+    argv = ["decompose", "missing.png", str(photos / "cat.png"), "-o", str(tmp_path / "o")]
+    assert main([*argv, "--iterations", "1"]) == 1  # progress bar on
+    err = capsys.readouterr().err
+    line = next(x for x in err.split("\n") if "missing.png" in x)
+    assert line.split("\r")[-1] == "torchiid: error: missing.png: no such file"

@@ -2,14 +2,19 @@
 
 Subcommands: ``decompose`` (the method, or colour Retinex), ``features`` (look at the Stage 0
 features), ``export-onnx`` (write the ONNX backbone) and ``eval`` (metrics on datasets).
-Errors a user can cause end in a one-line ``torchiid: error: ...`` and a non-zero exit status.
+Errors a user can cause end in a one-line ``torchiid: error: ...`` and a non-zero exit status:
+0 when everything was done, 1 when some inputs failed (the others were done), 2 for a usage or
+set-up error (nothing was processed) and 130 when interrupted (Ctrl-C, SIGINT or SIGTERM).
+An unexpected exception is reported in one line too; ``--verbose`` adds its traceback.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -156,14 +161,37 @@ def main(argv: Sequence[str] | None = None) -> int:
         "export-onnx": _cmd_export,
         "eval": _cmd_eval,
     }
+    main_thread = threading.current_thread() is threading.main_thread()
+    if main_thread:
+        # SIGTERM (kill, timeout, a closed session) cleans up like Ctrl-C
+        previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
         return handlers[args.command](args)
     except TorchiidError as exc:
-        print(f"torchiid: error: {exc}", file=sys.stderr)
+        print(f"torchiid: error: {_one_line(str(exc))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("torchiid: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # noqa: BLE001 - a one-line report, the traceback with -v
+        print(
+            f"torchiid: error: internal error ({type(exc).__name__}: {_one_line(str(exc))}); "
+            "rerun with --verbose for the traceback",
+            file=sys.stderr,
+        )
+        log.info("the error above came from here:", exc_info=exc)
+        return 2
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -184,7 +184,20 @@ def _log_luminance(image: torch.Tensor, eps: float) -> torch.Tensor:
 def _check_inputs(
     image: torch.Tensor, mask: torch.Tensor | None, params: Parameters
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    if isinstance(image, torch.Tensor) and image.dim() == 3:
+    if not isinstance(image, torch.Tensor):
+        raise ShapeError(
+            f"expected image to be a torch.Tensor, got {type(image).__name__}; pass linear RGB "
+            "as a float tensor of shape (B, 3, H, W) or (3, H, W), e.g. "
+            "torch.from_numpy(rgb).permute(2, 0, 1).float() for an (H, W, 3) array, or read "
+            "a file with torchiid.io.load_image(path).image"
+        )
+    for name, x in (("image", image), ("mask", mask)):
+        if isinstance(x, torch.Tensor) and x.device.type == "meta":
+            raise ShapeError(
+                f"{name} is on the meta device (a tensor without values); pass a tensor that "
+                "holds values, on the CPU or a GPU"
+            )
+    if image.dim() == 3:
         image = image[None]
     check_image(image, "image", min_side=params.patch_size)
     if mask is not None:
@@ -243,6 +256,15 @@ def decompose(
         True
     """
     params = params if params is not None else Parameters.preset("default")
+    if not isinstance(params, Parameters):
+        hint = (
+            "Parameters.from_dict(your_dict) or Parameters().replace(name=value)"
+            if isinstance(params, dict)
+            else "Parameters(), Parameters.preset(name) or Parameters.from_json(path)"
+        )
+        raise ParameterError(
+            f"params must be a torchiid.Parameters, got {type(params).__name__}; use {hint}"
+        )
     t_start = time.perf_counter()
     image, mask = _check_inputs(image, mask, params)
     in_dtype = image.dtype

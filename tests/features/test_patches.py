@@ -198,7 +198,7 @@ def test_module_equals_function(image):
         (torch.rand(1, 4, 64, 64), ShapeError, r"expected image of shape \(B, 3, H, W\)"),
         (torch.rand(3, 64, 64), ShapeError, r"expected image of shape \(B, 3, H, W\)"),
         (torch.full((1, 3, 64, 64), float("nan")), ImageError, "contains 12288 NaN"),
-        (torch.rand(1, 3, 50, 80), ImageError, "50x80 pixels; at least 60 px"),
+        (torch.rand(1, 3, 50, 80), ImageError, "80x50 px; at least 60 px"),
         (-torch.rand(1, 3, 64, 64), ImageError, "negative values"),
     ],
 )

@@ -158,9 +158,9 @@ def test_bad_input():
         selective_search(bad)
     with pytest.raises(ImageError, match="NaN"):
         selective_search(np.full((16, 16, 3), np.nan))
-    with pytest.raises(ImageError, match="4x16 pixels; at least 8"):
+    with pytest.raises(ImageError, match="16x4 px; at least 8"):
         selective_search(torch.rand(3, 4, 16))
-    with pytest.raises(ImageError, match="5x9 pixels; at least 8"):
+    with pytest.raises(ImageError, match="9x5 px; at least 8"):
         selective_search(np.zeros((5, 9, 3), dtype=np.uint8))
     with pytest.raises(ShapeError, match="got list"):
         selective_search([[0.0]])

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -13,10 +14,16 @@ import torch
 
 from torchiid.baselines.retinex import retinex_decomposition
 from torchiid.core.device import resolve_device
-from torchiid.core.exceptions import ParameterError, TorchiidError
+from torchiid.core.exceptions import ImageError, ParameterError, TorchiidError
 from torchiid.io import load_image, load_mask, save_image
 from torchiid.io.inputs import collect_inputs
-from torchiid.io.layers import layer_file_names, write_layers
+from torchiid.io.layers import (
+    OutputError,
+    OutputSet,
+    check_output_folder,
+    layer_file_names,
+    write_layers,
+)
 from torchiid.model import decompose
 from torchiid.params import Parameters
 from torchiid.priors.shading_terms import pixel_confidence
@@ -63,9 +70,9 @@ def output_names(stem: str, args: argparse.Namespace, params: Parameters) -> lis
 
 
 def _write_outputs(
-    out: Path, stem: str, loaded, result, args, params: Parameters, method: str, seconds: float
+    tx: OutputSet, stem: str, loaded, result, args, params: Parameters, seconds: float
 ) -> None:
-    """Write every layer of one image (see :mod:`torchiid.io.layers`)."""
+    """Write every layer of one image into the output set ``tx`` (:mod:`torchiid.io.layers`)."""
     image = loaded.image
     mask = None if result.mask is None else result.mask[0].cpu()
     confidence = None
@@ -73,14 +80,14 @@ def _write_outputs(
         confidence = pixel_confidence(image[None], params.dark_level, params.clip_level)[0]
         if mask is not None:
             confidence = confidence * mask
-    if method == "semantic":
+    if args.method == "semantic":
         params_json = params.to_json()
     else:
         params_json = json.dumps({"method": "color_retinex", **RETINEX_DEFAULTS}, indent=2) + "\n"
     white = float(result.shading_white[0])
     info = {
         "input": str(loaded.path),
-        "method": method,
+        "method": args.method,
         "working_size": list(reversed(result.working_size)) if result.working_size else None,
         "exif_orientation": getattr(loaded, "orientation", 1),
         "albedo_quantile": params.albedo_quantile,
@@ -90,7 +97,7 @@ def _write_outputs(
         "solves": [str(r) for r in result.solves],
     }
     write_layers(
-        out,
+        tx.out,
         stem,
         image,
         result.reflectance[0].cpu(),
@@ -101,107 +108,175 @@ def _write_outputs(
         mask=mask,
         confidence=confidence,
         save_npy=args.save_npy,
+        output_set=tx,
     )
     if args.save_iterations and getattr(result, "iterations", None):
+        named = {"sigma": "sigma", "rho": "rho", "R": "reflectance", "S": "shading"}
         for k, layers in enumerate(result.iterations, start=1):
-            named = {"sigma": "sigma", "rho": "rho", "R": "reflectance", "S": "shading"}
             for name, attr in named.items():
                 x = getattr(layers, attr)[0].cpu()
                 if name in ("sigma", "S"):
                     x = x / torch.quantile(x.flatten(), params.view_quantile).clamp_min(1e-12)
-                save_image(out / f"{stem}-iter{k}-{name}.png", x, "srgb8")
+                tx.write(f"{stem}-iter{k}-{name}.png", lambda p, x=x: save_image(p, x, "srgb8"))
 
 
-def run_decompose(args: argparse.Namespace) -> int:
-    """Run the ``decompose`` subcommand; returns the exit status."""
-    from tqdm import tqdm
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
 
-    params = params_from_args(args)
-    device = resolve_device(args.device)
-    inputs = collect_inputs(args.inputs)
+
+def _error_message(path: Path, exc: Exception) -> str:
+    """One line naming the input and the problem."""
+    if isinstance(exc, TorchiidError):
+        msg = _one_line(str(exc))
+    elif isinstance(exc, OSError):
+        where = f" {exc.filename}" if exc.filename else ""
+        msg = f"cannot access{where} ({exc.strerror or _one_line(str(exc))})"
+    elif isinstance(exc, (RuntimeError, MemoryError)):
+        msg = f"{type(exc).__name__}: {_one_line(str(exc))}"
+    else:
+        msg = (
+            f"internal error ({type(exc).__name__}: {_one_line(str(exc))}); "
+            "rerun with --verbose for the traceback"
+        )
+    return msg if str(path) in msg else f"{path}: {msg}"
+
+
+def _unique_inputs(inputs: list[Path]) -> list[Path]:
+    """The inputs without repeats of the same file; raises if two would write the same outputs."""
+    seen: set[Path] = set()
     stems: dict[str, Path] = {}
+    unique = []
     for p in inputs:
-        if p.stem in stems and stems[p.stem] != p:
+        key = Path(os.path.abspath(p))
+        if key in seen:
+            continue
+        seen.add(key)
+        if p.stem in stems:
             raise TorchiidError(
                 f"two inputs would write the same outputs: {stems[p.stem]} "
                 f"and {p}; rename one or run them separately"
             )
         stems[p.stem] = p
+        unique.append(p)
+    return unique
+
+
+def run_decompose(args: argparse.Namespace) -> int:
+    """Run the ``decompose`` subcommand; returns the exit status.
+
+    Everything that concerns the whole run (parameters, device, the output folder, the input
+    list, the ``--mask`` file) is checked before any image is decomposed and raises
+    :class:`TorchiidError` (exit status 2). Then every input is processed on its own: a bad
+    input, or an output that cannot be written, is reported in one line naming the file, the
+    other inputs go on, and the status is 1. Each image's files are put in place together
+    (:class:`~torchiid.io.layers.OutputSet`); the output folder is created with the first of
+    them. An interrupt ends the run with status 130; the interrupted image leaves nothing.
+    """
+    from tqdm import tqdm
+
+    params = params_from_args(args)
+    device = resolve_device(args.device)
     out: Path = args.output
-    if out.exists() and not out.is_dir():
-        raise TorchiidError(f"{out}: output exists and is not a directory")
-    out.mkdir(parents=True, exist_ok=True)
-    shared_mask = None
+    check_output_folder(out)
+    inputs = _unique_inputs(collect_inputs(args.inputs))
+    shared_mask = load_mask(args.mask) if args.mask is not None else None
     show = not args.no_progress
-    failures = 0
+
+    def say(message: str) -> None:
+        if show:
+            tqdm.write(message, file=sys.stderr)  # above the progress bar, not into its line
+        else:
+            print(message, file=sys.stderr)
+
+    failures = written = 0
     bar = tqdm(inputs, desc="images", unit="img", disable=not show, file=sys.stderr, leave=False)
-    for path in bar:
-        t0 = time.perf_counter()
-        stem = path.stem
-        try:
-            existing = [n for n in output_names(stem, args, params) if (out / n).exists()]
-            if existing and not args.overwrite:
-                raise TorchiidError(f"{out / existing[0]} exists; pass --overwrite to replace it")
-            loaded = load_image(path, linear=args.linear)
-            image = loaded.image
-            mask = loaded.mask
-            if args.mask is not None:
-                if shared_mask is None or shared_mask.shape[-2:] != image.shape[-2:]:
-                    shared_mask = load_mask(args.mask, shape=tuple(image.shape[-2:]))
-                mask = shared_mask if mask is None else (mask & shared_mask)
-            batch = image[None].to(device)
-            mbatch = mask[None].to(device) if mask is not None else None
-            if args.method == "retinex":
-                result = retinex_decomposition(batch, params, mask=mbatch, **RETINEX_DEFAULTS)
-            else:
-                it_bar = tqdm(
-                    total=params.iterations,
-                    desc=f"{stem}",
-                    unit="it",
-                    disable=not show,
-                    file=sys.stderr,
-                    leave=False,
-                )
-
-                def progress(stage: str, k: int, total: int, _bar=it_bar) -> None:
-                    if stage == "iteration":
-                        _bar.update(1)
-
-                try:
-                    result = decompose(
-                        batch,
-                        params,
-                        mask=mbatch,
-                        return_iterations=args.save_iterations,
-                        return_stage1=False,
-                        progress=progress,
-                    )
-                finally:
-                    it_bar.close()
-            seconds = time.perf_counter() - t0
-            _write_outputs(out, stem, loaded, result, args, params, args.method, seconds)
-            capped = [r for r in result.solves if not r.converged]
-            if capped:
-                worst = max(capped, key=lambda r: r.residual / r.tolerance)
-                note = (
-                    f"torchiid: note: {path}: {len(capped)} of {len(result.solves)} solves "
-                    f"stopped at their iteration caps (worst: {worst}); see {stem}-info.json"
-                )
-                if show:
-                    tqdm.write(note, file=sys.stderr)
+    tx: OutputSet | None = None  # the set of the image being processed
+    path = out
+    try:
+        for path in bar:
+            t0 = time.perf_counter()
+            stem = path.stem
+            try:
+                tx = OutputSet(out, overwrite=args.overwrite, label=stem)
+                for name in output_names(stem, args, params):
+                    target = out / name
+                    if target.is_dir() and not target.is_symlink():
+                        raise OutputError(f"{target}: is a folder; cannot replace it by an output")
+                    if os.path.lexists(target) and not args.overwrite:
+                        raise OutputError(f"{target} exists; pass --overwrite to replace it")
+                loaded = load_image(path, linear=args.linear)
+                image = loaded.image
+                mask = loaded.mask
+                if shared_mask is not None:
+                    if shared_mask.shape[-2:] != image.shape[-2:]:
+                        (mh, mw), (h, w) = shared_mask.shape[-2:], image.shape[-2:]
+                        raise ImageError(
+                            f"{path}: is {w}x{h} px but the mask {args.mask} is {mw}x{mh} px"
+                        )
+                    mask = shared_mask if mask is None else (mask & shared_mask)
+                batch = image[None].to(device)
+                mbatch = mask[None].to(device) if mask is not None else None
+                if args.method == "retinex":
+                    result = retinex_decomposition(batch, params, mask=mbatch, **RETINEX_DEFAULTS)
                 else:
-                    print(note, file=sys.stderr)
-            done = f"{path} -> {out}/{stem}-* ({time.perf_counter() - t0:.1f} s)"
-            if show:
-                tqdm.write(done, file=sys.stderr)
-            else:
-                log.info(done)
-        except (TorchiidError, RuntimeError, MemoryError, OSError) as exc:
-            failures += 1
-            msg = str(exc) if isinstance(exc, TorchiidError) else f"{type(exc).__name__}: {exc}"
-            if str(path) not in msg:
-                msg = f"{path}: {msg}"
-            print(f"torchiid: error: {msg}", file=sys.stderr)
+                    it_bar = tqdm(
+                        total=params.iterations,
+                        desc=f"{stem}",
+                        unit="it",
+                        disable=not show,
+                        file=sys.stderr,
+                        leave=False,
+                    )
+
+                    def progress(stage: str, k: int, total: int, _bar=it_bar) -> None:
+                        if stage == "iteration":
+                            _bar.update(1)
+
+                    try:
+                        result = decompose(
+                            batch,
+                            params,
+                            mask=mbatch,
+                            return_iterations=args.save_iterations,
+                            return_stage1=False,
+                            progress=progress,
+                        )
+                    finally:
+                        it_bar.close()
+                seconds = time.perf_counter() - t0
+                with tx:
+                    _write_outputs(tx, stem, loaded, result, args, params, seconds)
+                    tx.commit()
+                written, tx = written + 1, None
+                capped = [r for r in result.solves if not r.converged]
+                if capped:
+                    worst = max(capped, key=lambda r: r.residual / r.tolerance)
+                    say(
+                        f"torchiid: note: {path}: {len(capped)} of {len(result.solves)} solves "
+                        f"stopped at their iteration caps (worst: {worst}); see {stem}-info.json"
+                    )
+                done = f"{path} -> {out}/{stem}-* ({time.perf_counter() - t0:.1f} s)"
+                if show:
+                    tqdm.write(done, file=sys.stderr)
+                else:
+                    log.info(done)
+            except Exception as exc:  # noqa: BLE001 - one bad input must not stop the batch
+                failures, tx = failures + 1, None
+                say(f"torchiid: error: {_error_message(path, exc)}")
+                if not isinstance(exc, TorchiidError):
+                    log.info("the error above came from here:", exc_info=exc)
+    except KeyboardInterrupt:
+        bar.close()
+        where = ""
+        if tx is not None and tx.committed:  # it arrived while the set was put in place
+            written += 1
+        elif tx is not None:
+            where = f" while processing {path} (nothing of it was written)"
+        print(
+            f"torchiid: interrupted{where}; {written} of {len(inputs)} input(s) written",
+            file=sys.stderr,
+        )
+        return 130
     bar.close()
     if failures:
         print(f"torchiid: {failures} of {len(inputs)} input(s) failed", file=sys.stderr)

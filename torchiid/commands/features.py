@@ -8,6 +8,7 @@ import time
 from torchiid.core.device import resolve_device
 from torchiid.core.exceptions import TorchiidError
 from torchiid.io import linear_to_srgb, load_image, save_uint8
+from torchiid.io.layers import OutputSet, check_output_folder
 
 OUTPUTS = ("gpca.png", "proposals.png", "patch-grid.png")
 
@@ -26,8 +27,12 @@ def run_features(args: argparse.Namespace) -> int:
 
     device = resolve_device(args.device)
     out = args.output
+    check_output_folder(out)
     stem = args.input.stem
     targets = [out / f"{stem}-{name}" for name in OUTPUTS]
+    for t in targets:
+        if t.is_dir() and not t.is_symlink():
+            raise TorchiidError(f"{t}: is a folder; cannot replace it by an output")
     existing = [t for t in targets if t.exists()]
     if existing and not args.overwrite:
         raise TorchiidError(f"{existing[0]} exists; pass --overwrite to replace it")
@@ -62,10 +67,12 @@ def run_features(args: argparse.Namespace) -> int:
 
     srgb = linear_to_srgb(loaded.image).permute(1, 2, 0).numpy()
     t0 = time.perf_counter()
-    out.mkdir(parents=True, exist_ok=True)
-    save_uint8(targets[0], gpca)
-    save_uint8(targets[1], overlay_masks(srgb, props.masks(select_masks(props, 4)), columns=2))
-    save_uint8(targets[2], draw_patch_grid(srgb, grid.boxes))
+    overlay = overlay_masks(srgb, props.masks(select_masks(props, 4)), columns=2)
+    pictures = [gpca, overlay, draw_patch_grid(srgb, grid.boxes)]
+    with OutputSet(out, overwrite=args.overwrite, label=stem) as tx:  # all three or none
+        for target, picture in zip(targets, pictures, strict=True):
+            tx.write(target.name, lambda p, picture=picture: save_uint8(p, picture))
+        tx.commit()
     timings.append(("write pictures", time.perf_counter() - t0))
 
     width = max(len(n) for n, _ in timings)

@@ -74,7 +74,7 @@ def check_image(
         raise ImageError(f"{name} is an empty batch (B = 0)")
     h, w = x.shape[-2:]
     if h < min_side or w < min_side:
-        raise ImageError(f"{name} is {h}x{w} pixels; at least {min_side} px per side is needed")
+        raise ImageError(f"{name} is {w}x{h} px; at least {min_side} px per side is needed")
     check_finite(x, name)
     if nonnegative and bool((x < 0).any()):
         raise ImageError(f"{name} has negative values; expected linear intensities >= 0")

@@ -433,6 +433,8 @@ class EvalRunner:
             raise TorchiidError(f"results directory {self.results_dir} does not exist")
         self.dataset = dataset
         self.root = Path(root)
+        if self.root.exists() and not self.root.is_dir():
+            raise TorchiidError(f"{self.root}: is a file, not a {dataset} dataset directory")
         self.method = "results" if self.results_dir is not None else method
         self.params = params
         self.output = (

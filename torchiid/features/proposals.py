@@ -190,7 +190,7 @@ def _as_srgb_arrays(image: torch.Tensor | np.ndarray) -> tuple[list[np.ndarray],
 
 def _check_side(h: int, w: int) -> None:
     if h < MIN_SIDE or w < MIN_SIDE:
-        raise ImageError(f"image is {h}x{w} pixels; at least {MIN_SIDE} px per side is needed")
+        raise ImageError(f"image is {w}x{h} px; at least {MIN_SIDE} px per side is needed")
 
 
 def _validate(scales, colour_spaces, similarities, max_proposals, min_size, sigma) -> None:

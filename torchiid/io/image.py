@@ -20,8 +20,12 @@ Reading (:func:`load_image`, :func:`load_mask`, :func:`read_exr`):
   video of a motion photo, MPF / gain-map images or padding, are allowed); every PNG chunk must
   lie inside the file, critical chunks must match their CRC-32, and the IEND chunk must be
   there; WebP RIFF chunks and the TIFF strips or tiles of the first image must lie inside the
-  file; OpenEXR pixel data must decode. A JPEG has no checksum, so altered bytes inside its
-  compressed data that still decode cannot be detected.
+  file; OpenEXR pixel data must decode. While a JPEG decodes, libjpeg's reports of damaged
+  data (premature end of a data segment, bad Huffman code, ...), which it would otherwise
+  paper over with gray filler or garbled blocks, reject the file too. A JPEG has no checksum,
+  so altered bytes inside its compressed data that still decode cleanly cannot be detected.
+* What the C decoders print to stderr is collected and logged (``torchiid -v`` shows it),
+  not left on the terminal beside torchiid's one-line error.
 * Bad files raise :class:`~torchiid.core.exceptions.ImageError` with a one-line message naming
   the file and the problem: missing, unreadable, empty, not an image, truncated or corrupt,
   zero size, smaller than ``min_side`` pixels, or containing NaN / infinity.
@@ -37,11 +41,13 @@ or TIFF, through OpenCV), float32 ``.npy``, and float32 OpenEXR (ZIP compression
 from __future__ import annotations
 
 import contextlib
+import logging
 import mmap
 import numbers
 import os
 import re
 import struct
+import sys
 import tempfile
 import threading
 import zlib
@@ -70,6 +76,8 @@ __all__ = [
     "srgb_to_linear",
     "linear_to_srgb",
 ]
+
+log = logging.getLogger(__name__)
 
 Encoding = Literal["srgb8", "srgb16", "linear16", "npy", "exr"]
 
@@ -246,7 +254,7 @@ def _check_png(path: Path, data: mmap.mmap | bytes) -> bytes | None:
                 raise _damaged(path, "the file ends before the PNG IEND chunk")
             length = int.from_bytes(view[pos : pos + 4], "big")
             kind = bytes(view[pos + 4 : pos + 8])
-            name = kind.decode("latin-1")
+            name = kind.decode("latin-1") if kind.isalpha() else f"0x{kind.hex()}"
             end = pos + 12 + length
             if length > 0x7FFFFFFF:
                 raise _damaged(path, f"PNG chunk length {length} at byte {pos}")
@@ -375,6 +383,50 @@ def _orient(arr: np.ndarray, orientation: int) -> np.ndarray:
     return arr
 
 
+# What libjpeg says, on stderr, when it decodes damaged data: it goes on and returns a picture
+# with gray filler or garbled blocks, so these make the file "truncated or corrupt". Its other
+# warnings ("N extraneous bytes before marker", unknown JFIF revision, ...) are common in
+# real files whose pixels are all there, and only logged.
+_JPEG_DAMAGE = re.compile(
+    r"Corrupt JPEG data: (?:premature end of data segment|bad Huffman code|"
+    r"bad arithmetic code|found marker)|Premature end of JPEG file|"
+    r"Inconsistent progression sequence"
+)
+_stderr_lock = threading.Lock()
+
+
+@contextlib.contextmanager
+def _decoder_messages() -> Iterator[list[str]]:
+    """Collect the lines C decoders print to stderr (file descriptor 2) during the block.
+
+    libjpeg and libpng report damaged data only there, and OpenCV's log writes there too;
+    a damaged file is reported once, in torchiid's one-line error, and the rest is logged
+    (``torchiid -v`` shows it). The list is filled when the block ends. Decodes in several
+    threads take turns here; if stderr cannot be redirected, nothing is collected.
+    """
+    messages: list[str] = []
+    with _stderr_lock:
+        try:
+            saved = os.dup(2)
+        except OSError:
+            yield messages
+            return
+        try:
+            with tempfile.TemporaryFile() as capture:
+                with contextlib.suppress(Exception):
+                    sys.stderr.flush()
+                os.dup2(capture.fileno(), 2)
+                try:
+                    yield messages
+                finally:
+                    os.dup2(saved, 2)
+                    capture.seek(0)
+                    text = capture.read().decode("utf-8", "replace")
+                    messages.extend(line.strip() for line in text.splitlines() if line.strip())
+        finally:
+            os.close(saved)
+
+
 class _Decoded(NamedTuple):
     arr: np.ndarray  # (H, W[, C]) as stored in the file, before orientation
     orientation: int
@@ -414,11 +466,18 @@ def _read_array(path: Path) -> _Decoded:
             at, dtype = patch
             buf[at : at + np.dtype(dtype).itemsize] = np.array([1], dtype).view(np.uint8)
         try:
-            arr = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+            with _decoder_messages() as messages:
+                arr = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
         except cv2.error as exc:
             raise _fail(path, f"is not an image OpenCV can decode ({_one_line(exc)})") from None
         finally:
             del buf
+    for message in messages:
+        log.info("%s: the decoder says: %s", path, message)
+    if kind == "jpeg" and arr is not None:
+        damage = next((m for m in messages if _JPEG_DAMAGE.search(m)), None)
+        if damage is not None:
+            raise _damaged(path, f"libjpeg: {damage}")
     if arr is None:
         raise _fail(path, "is not an image OpenCV can decode (corrupt or unsupported format)")
     return _Decoded(arr, orientation, arr.ndim == 3 and arr.shape[2] >= 3)

@@ -157,6 +157,8 @@ class PCGHistory:
         history: ``(iterations + 1, B)`` recursive relative residual after each iteration
             (row 0: the start).
         item_iterations: ``(B,)`` iterations each item ran.
+        snapshots: tolerance -> the iterate when every item first reached it (see
+            ``snapshot_tols``).
     """
 
     x: torch.Tensor
@@ -165,6 +167,7 @@ class PCGHistory:
     converged: bool
     history: torch.Tensor
     item_iterations: torch.Tensor = field(default_factory=lambda: torch.zeros(0))
+    snapshots: dict[float, torch.Tensor] = field(default_factory=dict)
 
     def iterations_to(self, tol: float) -> int:
         """First iteration at which every item's recorded residual is ``<= tol`` (-1: never)."""
@@ -187,6 +190,7 @@ def pcg_callable(
     precond: Callable[[torch.Tensor], torch.Tensor] | torch.Tensor | None = None,
     tol: float = 1e-5,
     max_iter: int = 500,
+    snapshot_tols: Sequence[float] = (),
 ) -> PCGHistory:
     """Batched preconditioned CG recording the relative residual of every iteration.
 
@@ -202,6 +206,8 @@ def pcg_callable(
         precond: the preconditioner.
         tol: relative residual tolerance.
         max_iter: iteration cap.
+        snapshot_tols: also keep a copy of the iterate when the (recursive) residual of every
+            item first drops to each of these tolerances (``PCGHistory.snapshots``).
 
     Returns:
         :class:`PCGHistory`.
@@ -229,6 +235,8 @@ def pcg_callable(
     rz = _bdot(r, z)
     res = _bdot(r, r).sqrt() / bnorm
     hist = [res.clone()]
+    snaps: dict[float, torch.Tensor] = {}
+    pending = sorted({float(t) for t in snapshot_tols}, reverse=True)
     active = res > tol
     reached = ~active
     iters = torch.zeros(b.shape[0], dtype=torch.long, device=b.device)
@@ -249,6 +257,8 @@ def pcg_callable(
         iters = iters + active.long()
         it += 1
         hist.append(res.clone())
+        while pending and bool((res <= pending[0]).all()):
+            snaps[pending.pop(0)] = x.clone()
         active = active & ok
         done = active & ~(res > tol)
         if bool(done.any()):
@@ -273,6 +283,7 @@ def pcg_callable(
         converged=bool((res_true <= tol * 1.0001).all()) and bool(reached.all()),
         history=torch.stack(hist),
         item_iterations=iters,
+        snapshots={**{t: x.clone() for t in pending if bool((res_true <= t).all())}, **snaps},
     )
 
 
@@ -321,13 +332,35 @@ class StencilOperator:
         self.offsets = [(int(dy), int(dx)) for dy, dx in offsets]
         if any(not _half(o) for o in self.offsets):
             raise ShapeError(f"offsets must be half offsets, got {self.offsets}")
-        if a.dim() != 4 or a.shape[1] != len(self.offsets) or d.shape != (a.shape[0], 1, *a.shape[2:]):
+        if (
+            a.dim() != 4
+            or a.shape[1] != len(self.offsets)
+            or d.shape != (a.shape[0], 1, *a.shape[2:])
+        ):
             raise ShapeError(f"inconsistent stencil shapes a={tuple(a.shape)} d={tuple(d.shape)}")
         self.a = a.contiguous()
         self.d = d.contiguous()
         self.factors = [(m.coalesce(), w) for m, w in factors]
-        self._factors_t = [m.t().coalesce() for m, _ in self.factors]
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+            # M x as a CSR product, M^T y as a scatter (both 10x faster than COO products)
+            self._csr = [
+                (
+                    m.to_sparse_csr(),
+                    m.indices()[0],
+                    m.indices()[1],
+                    m.values().view(-1, 1),
+                    w.view(-1, 1),
+                )
+                for m, w in self.factors
+            ]
         self.batch, _, self.height, self.width = d.shape
+        # slices and coefficient views of every offset, computed once
+        self._ops = []
+        for k, (dy, dx) in enumerate(self.offsets):
+            yi, xi, yj, xj = shift_slices(dy, dx, self.height, self.width)
+            if yi.stop > yi.start and xi.stop > xi.start:
+                self._ops.append((yi, xi, yj, xj, self.a[:, k : k + 1, yi, xi]))
 
     # -- basic properties -----------------------------------------------------------------
     @property
@@ -369,11 +402,8 @@ class StencilOperator:
     # -- products ---------------------------------------------------------------------------
     def stencil_matvec(self, x: torch.Tensor) -> torch.Tensor:
         """The stencil and diagonal part times ``x`` ``(B, C, H, W)``."""
-        h, w = self.height, self.width
         y = self.d * x
-        for k, (dy, dx) in enumerate(self.offsets):
-            yi, xi, yj, xj = shift_slices(dy, dx, h, w)
-            ak = self.a[:, k : k + 1, yi, xi]
+        for yi, xi, yj, xj, ak in self._ops:
             y[:, :, yi, xi].addcmul_(ak, x[:, :, yj, xj])
             y[:, :, yj, xj].addcmul_(ak, x[:, :, yi, xi])
         return y
@@ -383,10 +413,14 @@ class StencilOperator:
         if not self.factors:
             return out
         b, c, h, w = x.shape
-        xc = x.permute(0, 2, 3, 1).reshape(b * h * w, c)
-        for (m, wr), mt in zip(self.factors, self._factors_t, strict=True):
-            t = torch.sparse.mm(m, xc) * wr.view(-1, 1)
-            out += torch.sparse.mm(mt, t).view(b, h, w, c).permute(0, 3, 1, 2)
+        # (B H W, C) with standard strides (a permuted view is 100x slower in the CSR kernel)
+        xc = x.reshape(-1, 1) if c == 1 else x.permute(0, 2, 3, 1).reshape(b * h * w, c)
+        xc = xc.contiguous() if c == 1 else xc.clone(memory_format=torch.contiguous_format)
+        for m, rows, cols, vals, wr in self._csr:
+            t = wr * (m @ xc)
+            acc = torch.zeros(b * h * w, c, dtype=out.dtype, device=out.device)
+            acc.index_add_(0, cols, vals * t[rows])
+            out += acc.view(b, h, w, c).permute(0, 3, 1, 2)
         return out
 
     def matvec(self, x: torch.Tensor) -> torch.Tensor:
@@ -520,18 +554,15 @@ class StencilOperator:
                 a[:, k, yi, xi] *= m[:, 0, yi, xi] * m[:, 0, yj, xj]
             d = d * m
             mf = m.reshape(-1)
-            factors = [
-                (
-                    torch.sparse_coo_tensor(
-                        mm.coalesce().indices(),
-                        mm.coalesce().values() * mf[mm.coalesce().indices()[1]],
-                        mm.shape,
-                        check_invariants=False,
-                    ).coalesce(),
-                    wr,
+            masked = []
+            for mm, wr in factors:  # M D_m: drop the columns of pixels outside
+                mm = mm.coalesce()
+                idx = mm.indices()
+                vals = mm.values() * mf[idx[1]]
+                masked.append(
+                    (torch.sparse_coo_tensor(idx, vals, mm.shape, check_invariants=False), wr)
                 )
-                for mm, wr in factors
-            ]
+            factors = masked
         if extra_diag is not None:
             d = d + extra_diag.to(device=dev, dtype=dt).reshape(b, 1, h, w)
         return cls(offsets, a, d, factors)
@@ -540,6 +571,32 @@ class StencilOperator:
 # ---------------------------------------------------------------------------------------------
 # torch multigrid: geometric aggregation, smoothed prolongation, Galerkin by probing
 # ---------------------------------------------------------------------------------------------
+
+
+class _DenseSPD:
+    """Solves with a batch ``(B, n, n)`` of dense symmetric PSD matrices (float64).
+
+    Cholesky; where round-off made a (near-singular) matrix indefinite, a clipped
+    eigendecomposition instead (eigenvalues below ``1e-13 * lambda_max`` raised to it), so the
+    solve is always an SPD operator.
+    """
+
+    def __init__(self, dense: torch.Tensor) -> None:
+        dense = 0.5 * (dense + dense.transpose(-1, -2)).to(torch.float64)
+        self.chol, info = torch.linalg.cholesky_ex(dense)
+        self.eig = None
+        if bool((info != 0).any()):
+            ev, vec = torch.linalg.eigh(dense)
+            ev = torch.maximum(ev, ev[..., -1:].abs() * 1e-13)
+            self.eig = (vec, 1 / ev)
+
+    def solve(self, rhs: torch.Tensor) -> torch.Tensor:
+        """``A^{-1} rhs`` for ``rhs`` ``(B, n, k)``."""
+        rhs = rhs.to(torch.float64)
+        if self.eig is not None:
+            vec, inv = self.eig
+            return vec @ (inv.unsqueeze(-1) * (vec.transpose(-1, -2) @ rhs))
+        return torch.cholesky_solve(rhs, self.chol)
 
 
 def _power_lmax(
@@ -554,7 +611,9 @@ def _power_lmax(
     """
     g = torch.Generator(device="cpu").manual_seed(seed)
     s = dinv.clamp_min(0).sqrt()
-    x = torch.rand(dinv.shape, generator=g, dtype=torch.float64).to(dinv) + 0.5
+    # the same start for every item: a batch gives its items' one-by-one preconditioners
+    x = torch.rand((1, *dinv.shape[1:]), generator=g, dtype=torch.float64).to(dinv) + 0.5
+    x = x.expand_as(dinv).contiguous()
     x = x / x.flatten(1).norm(dim=1).view(-1, 1, 1, 1)
     lam = torch.ones(dinv.shape[0], 1, 1, 1, dtype=dinv.dtype, device=dinv.device)
     for _ in range(iters):
@@ -589,14 +648,23 @@ class GalerkinMultigrid:
     ``(2 r_c + 1)^2`` probe vectors, and the non-local rows ``M^T W M`` become ``(M P)^T W (M P)``
     (factored, so the few LLE rows never fill the coarse matrices). Coarsening stops when an
     image has at most ``max_coarse`` unknowns; that level is solved exactly by a float64 dense
-    Cholesky factorisation (eigenvalues clipped if round-off made it indefinite).
+    Cholesky factorisation of ``A_c + coarse_shift * diag(A_c)`` (eigenvalues clipped if
+    round-off made it indefinite).
 
     Each level is smoothed by a Chebyshev polynomial of degree ``degree`` in ``D^{-1} A`` on
-    ``[lambda_max / 30, lambda_max]`` (the same polynomial before and after the coarse
+    ``[lambda_max / cheb_ratio, lambda_max]`` (the same polynomial before and after the coarse
     correction), so the V-cycle is a fixed symmetric positive definite operator.
 
-    Setup runs in ``setup_dtype`` (float64: the anchor is ``1e-8`` of the diagonal and must
-    survive the Galerkin sums); the cycle runs in the dtype of the operator it was built from.
+    ``coarse_shift``: the shading matrix is singular up to its anchor (``1e-8`` of the mean
+    diagonal, below float32 resolution), so an exact coarse solve amplifies the float32
+    round-off of the residual's constant component by ``~1e8``; PCG then stagnates (measured:
+    24 instead of 16 iterations to 1e-5 at 256x192). Shifting the coarsest diagonal by a
+    relative ``1e-5`` leaves every other mode alone and restores the float64 iteration counts;
+    the constant mode itself is already right in the cold start (``Psi 1 = 0``).
+
+    The setup (Galerkin products) runs in ``setup_dtype`` (default: the operator's dtype; with
+    the shift above float32 products lose nothing measurable and halve the setup time); the
+    cycle runs in the dtype of the operator it was built from.
 
     Args:
         op: the fine operator (:class:`StencilOperator`, e.g. from
@@ -606,7 +674,10 @@ class GalerkinMultigrid:
         max_coarse: largest coarsest grid (unknowns per image) solved densely.
         max_levels: cap on the number of levels.
         power_iters: power iterations estimating ``lambda_max`` per level.
-        setup_dtype: dtype of the Galerkin products.
+        setup_dtype: dtype of the Galerkin products (``None``: the operator's).
+        coarse_shift: relative diagonal shift of the coarsest matrix (see above).
+        prolong_omega: prolongation smoothing ``omega * lambda_max(D_l^{-1} A_l)``.
+        cheb_ratio: Chebyshev interval ``[lambda_max / cheb_ratio, lambda_max]``.
 
     Apply with ``M(r)`` / :meth:`apply` on ``(B, 1, H, W)`` residuals (any extra channel
     dimension is treated as independent vectors).
@@ -620,8 +691,10 @@ class GalerkinMultigrid:
         max_coarse: int = 1500,
         max_levels: int = 12,
         power_iters: int = 15,
-        setup_dtype: torch.dtype = torch.float64,
-        coarse_shift: float = 0.0,
+        setup_dtype: torch.dtype | None = None,
+        coarse_shift: float = 1e-5,
+        prolong_omega: float = 4.0 / 3.0,
+        cheb_ratio: float = 30.0,
     ) -> None:
         if block < 2:
             raise ValueError(f"block must be >= 2, got {block}")
@@ -630,9 +703,10 @@ class GalerkinMultigrid:
         t0 = time.perf_counter()
         self.block, self.degree = int(block), int(degree)
         self.coarse_shift = float(coarse_shift)
+        self.cheb_ratio = float(cheb_ratio)
         self.work_dtype = op.dtype
         self.levels: list[_Level] = []
-        cur = op.to(dtype=setup_dtype)
+        cur = op.to(dtype=setup_dtype or op.dtype)
         while True:
             last = cur.numel <= max_coarse or len(self.levels) + 1 >= max_levels
             last = last or min(cur.height, cur.width) < 2 * block
@@ -647,7 +721,7 @@ class GalerkinMultigrid:
             loc = cur.local()
             dl_inv = 1 / loc.d
             rho = _power_lmax(loc.stencil_matvec, dl_inv, power_iters)
-            omega = (4.0 / 3.0) / rho
+            omega = prolong_omega / rho
             hc, wc = -(-cur.height // block), -(-cur.width // block)
             coarse = self._galerkin(cur, loc, dl_inv, omega, (hc, wc))
             lev.local = loc.to(dtype=self.work_dtype)
@@ -685,14 +759,22 @@ class GalerkinMultigrid:
 
     @staticmethod
     def _prolong(
-        xc: torch.Tensor, up: Callable, loc: StencilOperator, dl_inv: torch.Tensor, omega: torch.Tensor
+        xc: torch.Tensor,
+        up: Callable,
+        loc: StencilOperator,
+        dl_inv: torch.Tensor,
+        omega: torch.Tensor,
     ) -> torch.Tensor:
         u = up(xc)
         return u - (omega * dl_inv) * loc.stencil_matvec(u)
 
     @staticmethod
     def _restrict(
-        r: torch.Tensor, down: Callable, loc: StencilOperator, dl_inv: torch.Tensor, omega: torch.Tensor
+        r: torch.Tensor,
+        down: Callable,
+        loc: StencilOperator,
+        dl_inv: torch.Tensor,
+        omega: torch.Tensor,
     ) -> torch.Tensor:
         return down(r - omega * loc.stencil_matvec(dl_inv * r))
 
@@ -700,9 +782,7 @@ class GalerkinMultigrid:
         """``P_level xc``: coarse ``(B, C, Hc, Wc)`` to the grid of ``level``."""
         lev = self.levels[level]
         shape = (lev.op.height, lev.op.width)
-        return self._prolong(
-            xc, lambda v: self._up(v, shape), lev.local, lev.dloc_inv, lev.omega
-        )
+        return self._prolong(xc, lambda v: self._up(v, shape), lev.local, lev.dloc_inv, lev.omega)
 
     def restrict(self, level: int, r: torch.Tensor) -> torch.Tensor:
         """``P_level^T r``."""
@@ -821,34 +901,21 @@ class GalerkinMultigrid:
     # -- coarse solve ----------------------------------------------------------------------
     def _coarse_factor(self, op: StencilOperator) -> None:
         dense = op.to(dtype=torch.float64).to_dense()
-        dense = 0.5 * (dense + dense.transpose(1, 2))
         if self.coarse_shift > 0:
             ar = torch.arange(dense.shape[-1], device=dense.device)
             dense[:, ar, ar] *= 1 + self.coarse_shift
-        chol, info = torch.linalg.cholesky_ex(dense)
-        self._coarse_eig = None
-        if bool((info != 0).any()):
-            # round-off made the (near-singular) coarse matrix indefinite: clip its spectrum
-            ev, vec = torch.linalg.eigh(dense)
-            floor = ev[:, -1:].abs() * 1e-13
-            ev = torch.maximum(ev, floor)
-            self._coarse_eig = (vec, 1 / ev)
-        self._coarse_chol = chol
+        self._coarse = _DenseSPD(dense)
 
     def _coarse_solve(self, r: torch.Tensor) -> torch.Tensor:
         b, c, h, w = r.shape
         rhs = r.to(torch.float64).reshape(b, c, h * w).transpose(1, 2)
-        if self._coarse_eig is not None:
-            vec, inv = self._coarse_eig
-            x = vec @ (inv.unsqueeze(-1) * (vec.transpose(1, 2) @ rhs))
-        else:
-            x = torch.cholesky_solve(rhs, self._coarse_chol)
+        x = self._coarse.solve(rhs)
         return x.transpose(1, 2).reshape(b, c, h, w).to(r.dtype)
 
     # -- smoothing and cycle ----------------------------------------------------------------
     def _chebyshev(self, lev: _Level, b: torch.Tensor, x: torch.Tensor | None) -> torch.Tensor:
         lmax = lev.lmax
-        lmin = lmax / 30.0
+        lmin = lmax / self.cheb_ratio
         theta = (lmax + lmin) / 2
         delta = (lmax - lmin) / 2
         sigma = theta / delta
@@ -877,7 +944,9 @@ class GalerkinMultigrid:
         """``M^{-1} r`` (one V-cycle) for ``r`` ``(B, 1, H, W)`` (or ``(B, C, H, W)``)."""
         op = self.levels[0].op
         if r.shape[0] != op.batch or r.shape[-2:] != (op.height, op.width):
-            raise ShapeError(f"expected (B={op.batch}, C, {op.height}, {op.width}), got {tuple(r.shape)}")
+            raise ShapeError(
+                f"expected (B={op.batch}, C, {op.height}, {op.width}), got {tuple(r.shape)}"
+            )
         return self._cycle(0, r.to(self.work_dtype)).to(r.dtype)
 
     __call__ = apply
@@ -1020,9 +1089,237 @@ class AMGPreconditioner:
     __call__ = apply
 
     def operator_complexity(self) -> float:
-        """pyamg's operator complexity."""
+        """Operator complexity of the pyamg hierarchy."""
         return float(self.ml.operator_complexity())
 
 
-class HSCPreconditioner:  # filled in below
-    """Placeholder replaced further down."""
+# ---------------------------------------------------------------------------------------------
+# Krishnan, Fattal & Szeliski: hierarchical sparsify-and-compensate (HSC)
+# ---------------------------------------------------------------------------------------------
+
+
+def _compensate(w, drop_i, drop_j, drop_w, path_mask, factor):  # noqa: ANN001, ANN202
+    """Remove edges ``(i, j, w)`` and re-route each along the 2-paths ``i - k - j`` of ``w``.
+
+    The removed weight is spread over the common neighbours ``k`` allowed by ``path_mask``
+    (bool per node) in proportion to the series conductances ``w_ik w_kj / (w_ik + w_kj)`` and
+    added, times ``factor``, to both edges of each path (``factor = 2`` keeps the energy of a
+    linear function whose path node is the edge's midpoint and makes the new Laplacian
+    dominate the old one; ``factor = 1``, the default of :class:`HSCPreconditioner`, measured
+    fewer PCG iterations). Edges without such a path are dropped. Returns the symmetric
+    increment (scipy CSR) and the weight that found no path.
+    """
+    import scipy.sparse as sp
+
+    n = w.shape[0]
+    ne = len(drop_w)
+    wk = (w @ sp.diags(path_mask.astype(np.float64))).tocsr()  # edges into allowed path nodes
+    wk.sum_duplicates()
+    wk.data = np.maximum(wk.data, 0.0)
+    wk.eliminate_zeros()
+    inv = wk.copy()
+    inv.data = 1 / inv.data
+    bi, bj = wk[drop_i], wk[drop_j]
+    common = bi.multiply(bj).tocsr()  # support: the common neighbours k of each edge
+    common.eliminate_zeros()
+    common.data[:] = 1.0
+    # series conductance 1 / (1 / w_ik + 1 / w_jk) on the common support
+    cond = (inv[drop_i] + inv[drop_j]).multiply(common).tocsr()
+    cond.eliminate_zeros()
+    cond.data = 1 / cond.data
+    tot = np.asarray(cond.sum(axis=1)).ravel()
+    has = tot > 0
+    scale = np.where(has, factor * drop_w / np.where(has, tot, 1), 0.0)
+    share = (sp.diags(scale) @ cond).tocsr()  # (edges, n): weight added to (i, k) and (k, j)
+    ends = sp.csr_matrix(
+        (np.ones(2 * ne), (np.concatenate([drop_i, drop_j]), np.tile(np.arange(ne), 2))),
+        shape=(n, ne),
+    )
+    half = (ends @ share).tocsr()
+    inc = (half + half.T).tocsr()
+    lost = float(drop_w[~has].sum())
+    return inc, lost
+
+
+class HSCPreconditioner:
+    """Hierarchical sparsify-and-compensate preconditioner (Krishnan, Fattal & Szeliski 2013).
+
+    Our algebraic reading of the paper for these image systems (CPU, scipy):
+
+    1. The matrix is turned into a grounded graph Laplacian ``L(W) + diag(g)`` with
+       non-negative edge weights: positive off-diagonals (matting, LLE) are removed and added
+       to both diagonals (the result dominates the original).
+    2. Each level splits its nodes geometrically, alternating a checkerboard split of a square
+       lattice and the row split of the rotated lattice that follows (the paper's red-black
+       scheme), so the coarse nodes form a lattice of twice the spacing every two levels.
+    3. *Sparsify*: every edge between two fine (F) nodes is removed and *compensated* along
+       the 2-paths through coarse (C) nodes (series-conductance shares, see
+       :func:`_compensate`), so ``A_FF`` becomes diagonal.
+    4. *Eliminate*: the F nodes are eliminated exactly, ``S = A_CC - A_CF A_FF^{-1} A_FC``.
+    5. *Sparsify* ``S``: edges longer than ``keep_radius`` lattice spacings (fill, and the
+       non-local LLE couplings) are compensated along 2-paths of the kept edges, then the next
+       level starts from ``S``.
+
+    The coarsest level (``<= max_coarse`` unknowns) is factored densely. The preconditioner is
+    the exact inverse of the product of these sparsified block factorisations, hence SPD; it
+    is applied by one forward and one backward substitution through the levels. The paper's
+    exact weighting rules are not reproduced (only its abstract was available to us); the
+    scheme above follows its description (sparsification of fine-fine connections and of
+    fill, compensation by strengthening nearby connections, exact elimination).
+
+    Args:
+        matrix: scipy sparse ``(B N, B N)`` SPD matrix.
+        shape: ``(B, 1, H, W)``.
+        keep_radius: longest kept edge after elimination, in lattice spacings.
+        factor: compensation factor (see :func:`_compensate`).
+        max_coarse: unknowns of the dense coarsest level.
+        coarse_shift: relative diagonal shift of the coarsest matrix (round-off guard).
+    """
+
+    def __init__(
+        self,
+        matrix: object,
+        shape: Sequence[int],
+        keep_radius: float = 2.0,
+        factor: float = 1.0,
+        max_coarse: int = 1500,
+        coarse_shift: float = 1e-5,
+    ) -> None:
+        import scipy.sparse as sp
+
+        t0 = time.perf_counter()
+        self.shape = tuple(int(v) for v in shape)
+        b, _, h, w = self.shape
+        a = sp.csr_matrix(matrix, dtype=np.float64)
+        n = a.shape[0]
+        diag = a.diagonal()
+        off = (a - sp.diags(diag)).tocsr()
+        off.eliminate_zeros()
+        pos = off.multiply(off > 0).tocsr()  # positive off-diagonals -> removed, to diagonals
+        wts = (-(off - pos)).tocsr()  # edge weights >= 0
+        ground = diag - np.asarray(wts.sum(axis=1)).ravel() + np.asarray(pos.sum(axis=1)).ravel()
+        ground = np.maximum(ground, 0.0)
+        idx = np.arange(n)
+        yy = (idx % (h * w)) // w
+        xx = idx % w
+        img = idx // (h * w)
+        self.levels: list[tuple] = []
+        self.lost: list[float] = []
+        nodes = idx  # global ids of the current level's nodes
+        level = 0
+        while True:
+            m = len(nodes)
+            if m <= max_coarse * b or level >= 40:
+                break
+            spacing = 2 ** (level // 2)
+            ys, xs = yy[nodes] // spacing, xx[nodes] // spacing
+            if level % 2 == 0:
+                fine = (ys + xs) % 2 == 1
+            else:
+                fine = ys % 2 == 1
+            if fine.all() or not fine.any():
+                break
+            # 3. sparsify F-F edges
+            coo = sp.triu(wts, k=1).tocoo()
+            ff = fine[coo.row] & fine[coo.col]
+            lost = 0.0
+            if ff.any():
+                inc, lost = _compensate(wts, coo.row[ff], coo.col[ff], coo.data[ff], ~fine, factor)
+                rm = sp.csr_matrix(
+                    (
+                        np.concatenate([coo.data[ff], coo.data[ff]]),
+                        (
+                            np.concatenate([coo.row[ff], coo.col[ff]]),
+                            np.concatenate([coo.col[ff], coo.row[ff]]),
+                        ),
+                    ),
+                    shape=wts.shape,
+                )
+                wts = (wts - rm + inc).tocsr()
+                wts.eliminate_zeros()
+            deg = np.asarray(wts.sum(axis=1)).ravel()
+            fi, ci = np.nonzero(fine)[0], np.nonzero(~fine)[0]
+            d_f = deg[fi] + ground[fi]
+            w_cf = wts[ci][:, fi].tocsr()  # edge weights C-F (A_CF = -w_cf)
+            w_cc = wts[ci][:, ci].tocsr()
+            # 4. eliminate F: S = A_CC - A_CF D_F^-1 A_FC, as weights and ground
+            fill = (w_cf @ sp.diags(1 / d_f) @ w_cf.T).tocsr()
+            fill_diag = fill.diagonal()
+            d_c = deg[ci] + ground[ci] - fill_diag
+            s_w = (w_cc + fill - sp.diags(fill_diag)).tocsr()
+            s_w.eliminate_zeros()
+            g_c = np.maximum(d_c - np.asarray(s_w.sum(axis=1)).ravel(), 0.0)
+            self.levels.append((nodes[fi], nodes[ci], 1 / d_f, w_cf))
+            # 5. sparsify long edges of S
+            cn = nodes[ci]
+            sc = sp.triu(s_w, k=1).tocoo()
+            dy = (yy[cn[sc.row]] - yy[cn[sc.col]]) / (2 ** ((level + 1) / 2))
+            dx = (xx[cn[sc.row]] - xx[cn[sc.col]]) / (2 ** ((level + 1) / 2))
+            far = (dy * dy + dx * dx > keep_radius**2 + 1e-9) | (img[cn[sc.row]] != img[cn[sc.col]])
+            if far.any():
+                near_w = s_w.copy()
+                rm = sp.csr_matrix(
+                    (
+                        np.concatenate([sc.data[far], sc.data[far]]),
+                        (
+                            np.concatenate([sc.row[far], sc.col[far]]),
+                            np.concatenate([sc.col[far], sc.row[far]]),
+                        ),
+                    ),
+                    shape=s_w.shape,
+                )
+                near_w = (near_w - rm).tocsr()
+                near_w.eliminate_zeros()
+                inc, lost2 = _compensate(
+                    near_w,
+                    sc.row[far],
+                    sc.col[far],
+                    sc.data[far],
+                    np.ones(len(ci), dtype=bool),
+                    factor,
+                )
+                s_w = (near_w + inc).tocsr()
+                lost += lost2
+            self.lost.append(lost)
+            wts, ground, nodes = s_w, g_c, cn
+            level += 1
+        # coarsest: dense Cholesky of L(W) + diag(g)
+        dense = -wts.toarray()
+        np.fill_diagonal(dense, np.asarray(wts.sum(axis=1)).ravel() + ground)
+        dense[np.diag_indices_from(dense)] *= 1 + coarse_shift
+        self._coarse_nodes = nodes
+        self._coarse = _DenseSPD(torch.from_numpy(dense)[None])
+        self.setup_time = time.perf_counter() - t0
+
+    @classmethod
+    def from_system(
+        cls,
+        total: QuadraticTerm,
+        extra_diag: torch.Tensor | None = None,
+        mask: torch.Tensor | None = None,
+        **kwargs: object,
+    ) -> HSCPreconditioner:
+        """Assemble (:func:`assemble_csr`) and build; ``setup_time`` includes the assembly."""
+        t0 = time.perf_counter()
+        out = cls(assemble_csr(total, extra_diag, mask), total.shape, **kwargs)
+        out.setup_time = time.perf_counter() - t0
+        return out
+
+    def apply(self, r: torch.Tensor) -> torch.Tensor:
+        """``M^{-1} r`` for ``r`` ``(B, 1, H, W)`` (CPU; computed in float64)."""
+        if tuple(r.shape) != self.shape:
+            raise ShapeError(f"expected {self.shape}, got {tuple(r.shape)}")
+        v = r.detach().cpu().double().numpy().reshape(-1).copy()
+        ys = []
+        for f, c, df_inv, w_cf in self.levels:
+            y = df_inv * v[f]
+            v[c] += w_cf @ y  # r_C - A_CF y_F with A_CF = -w_cf
+            ys.append(y)
+        cn = self._coarse_nodes
+        rc = torch.from_numpy(v[cn]).view(1, -1, 1)
+        v[cn] = self._coarse.solve(rc).numpy().ravel()
+        for (f, c, df_inv, w_cf), y in zip(reversed(self.levels), reversed(ys), strict=True):
+            v[f] = y + df_inv * (w_cf.T @ v[c])  # y_F - D_F^-1 A_FC x_C
+        return torch.from_numpy(v).to(dtype=r.dtype, device=r.device).view(r.shape)
+
+    __call__ = apply

@@ -128,8 +128,15 @@ class ShadingOptions:
         tol: PCG relative-residual tolerance.
         max_iter: PCG iteration cap of a cold solve (per coarse-to-fine level).
         warm_max_iter: PCG cap of a warm-started solve (0: ``max_iter``).
-        levels: coarse-to-fine levels of a cold solve (1: none).
+        levels: coarse-to-fine levels of a cold solve (1: none; not used with a multigrid
+            preconditioner, which removes the smooth error itself).
         warn: emit ``ConvergenceWarning`` when a solve stops at its cap.
+        preconditioner: ``"jacobi"`` (the inverse diagonal), ``"multigrid"`` (torch-only
+            Galerkin multigrid V-cycle, :class:`~torchiid.solvers.multigrid.GalerkinMultigrid`,
+            CPU or GPU: 10–15 iterations to 1e-4 where Jacobi needs 600–1500) or ``"amg"``
+            (pyamg smoothed aggregation, CPU only). A multigrid hierarchy is built in the first
+            alternation and reused by the later ones (kept in the :class:`ShadingSystemCache`)
+            until it needs more than twice the iterations it needed when fresh.
     """
 
     t_c: float = 1e-4
@@ -150,6 +157,7 @@ class ShadingOptions:
     warm_max_iter: int = 0
     levels: int = 5
     warn: bool = True
+    preconditioner: str = "jacobi"
 
     def __post_init__(self) -> None:
         for name in ("anchor", "tol"):
@@ -159,6 +167,11 @@ class ShadingOptions:
             raise ParameterError(
                 "levels and max_iter must be >= 1 and warm_max_iter >= 0, got "
                 f"{self.levels}, {self.max_iter} and {self.warm_max_iter}"
+            )
+        if self.preconditioner not in ("jacobi", "multigrid", "amg"):
+            raise ParameterError(
+                "preconditioner must be 'jacobi', 'multigrid' or 'amg', "
+                f"got {self.preconditioner!r}"
             )
         if self.lle_neighbours not in ("knn", "random"):
             raise ParameterError(

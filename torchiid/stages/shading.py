@@ -52,6 +52,7 @@ from torchiid.priors.shading_terms import (
     retinex_term,
     shading_stencil,
 )
+from torchiid.solvers.multigrid import AMGPreconditioner, GalerkinMultigrid
 from torchiid.solvers.pcg import pcg
 from torchiid.stages.config import ShadingOptions, ShadingProblem, ShadingWeights
 
@@ -140,10 +141,15 @@ class ShadingSystemCache:
     Attributes:
         terms: name -> (key of the inputs, the unweighted term).
         hits: how many builds were skipped.
+        preconditioner: a multigrid hierarchy built for an earlier alternation, reused as
+            long as it keeps its iteration count (see ``ShadingOptions.preconditioner``).
+        fresh_iterations: the PCG iterations it needed on the system it was built for.
     """
 
     terms: dict[str, tuple[InputKey, QuadraticTerm]] = field(default_factory=dict)
     hits: int = 0
+    preconditioner: object | None = None
+    fresh_iterations: int = 0
 
 
 def _coarse_problem(problem: ShadingProblem, base_sigma: float) -> ShadingProblem:
@@ -188,6 +194,15 @@ def _default_base(image: torch.Tensor, mask: torch.Tensor | None, sigma: float) 
     num = smooth_base(image * m, sigma)
     den = smooth_base(m, sigma)
     return torch.where(den > 0, num / den.clamp_min(1e-12), image) * m
+
+
+def _multigrid(kind: str, system: SumQuadratic, extra: torch.Tensor, mask: torch.Tensor | None):
+    """The multigrid preconditioner ``kind`` for ``D_m system D_m + diag(extra)``."""
+    if kind == "amg":
+        if extra.device.type != "cpu":
+            raise ParameterError("preconditioner 'amg' (pyamg) runs on the CPU; use 'multigrid'")
+        return AMGPreconditioner.from_system(system, extra, mask)
+    return GalerkinMultigrid.from_system(system, extra, mask)
 
 
 def _sync(device: torch.device) -> None:
@@ -376,9 +391,17 @@ def solve_shading(
 
     precond = 1 / (diag + alpha * m + pinned)
     max_iter = o.max_iter
+    fresh = False
+    if o.preconditioner != "jacobi":
+        precond = cache.preconditioner if cache is not None else None
+        if precond is None:
+            t0 = time.perf_counter()
+            precond = _multigrid(o.preconditioner, system, extra, mask)
+            times["preconditioner"] = time.perf_counter() - t0
+            fresh = True
     if x0 is not None:
         max_iter = o.warm_max_iter or o.max_iter
-    elif o.levels > 1 and min(h, w) >= 2 * _MIN_COARSE:
+    elif o.preconditioner == "jacobi" and o.levels > 1 and min(h, w) >= 2 * _MIN_COARSE:
         sub = solve_shading(
             _coarse_problem(problem, o.base_sigma),
             weights,
@@ -396,6 +419,11 @@ def solve_shading(
     res = pcg(matvec, rhs, x0=start, precond=precond, tol=o.tol, max_iter=max_iter, warn=False)
     _sync(dev)
     times["solve"] = time.perf_counter() - t0
+    if cache is not None and o.preconditioner != "jacobi":
+        if fresh:
+            cache.preconditioner, cache.fresh_iterations = precond, res.iterations
+        elif res.iterations > 2 * cache.fresh_iterations + 5 or not res.converged:
+            cache.preconditioner = None  # the system drifted: rebuild for the next solve
     s = res.x * m
     s = s + (target - (s * m).flatten(1).sum(1).view(b, 1, 1, 1) / area) * m
     if o.warn and not res.converged:
@@ -410,7 +438,7 @@ def solve_shading(
     # overflow; sigma >= dark_eps^2 keeps rho finite (<= 1 / dark_eps^2 for I <= 1)
     shading = torch.exp(s).clamp_min(o.dark_eps * o.dark_eps)
     reflectance = image / shading
-    names = tuple(k for k in times if k not in ("solve", "coarse"))
+    names = tuple(k for k in times if k not in ("solve", "coarse", "preconditioner"))
     diagnostics = ShadingDiagnostics(
         iterations=res.iterations, residual=res.residual, converged=res.converged,
         times=times, terms=names,
