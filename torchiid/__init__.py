@@ -11,6 +11,7 @@ Image Decomposition" (IJCV). Images are channel-first **linear** RGB tensors ``(
 (torch.Size([1, 3, 64, 64]), torch.Size([1, 1, 64, 64]))
 """
 
+from torchiid import edit
 from torchiid.baselines.retinex import ColorRetinex, color_retinex
 from torchiid.core.exceptions import (
     ConvergenceWarning,
@@ -64,6 +65,7 @@ __all__ = [
     "TorchiidError",
     "color_retinex",
     "decompose",
+    "edit",
     "dssim",
     "efficientnet_lite0",
     "load_image",

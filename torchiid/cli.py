@@ -118,6 +118,9 @@ def build_parser() -> argparse.ArgumentParser:
     from torchiid.commands.eval import add_eval_parser
 
     add_eval_parser(sub)
+    from torchiid.commands.edit import add_edit_parser
+
+    add_edit_parser(sub)
     return parser
 
 
@@ -148,6 +151,12 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return run_eval(args)
 
 
+def _cmd_edit(args: argparse.Namespace) -> int:
+    from torchiid.commands.edit import run_edit
+
+    return run_edit(args)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``torchiid`` console script; returns the exit status."""
     parser = build_parser()
@@ -160,6 +169,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "features": _cmd_features,
         "export-onnx": _cmd_export,
         "eval": _cmd_eval,
+        "edit": _cmd_edit,
     }
     main_thread = threading.current_thread() is threading.main_thread()
     if main_thread:
