@@ -74,6 +74,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="also write <stem>-confidence.png (255: trusted colour, 0: dark or clipped pixel)",
     )
     d.add_argument(
+        "--save-stage1",
+        action="store_true",
+        help="also write the last Stage 1 layers <stem>-sigma.exr and <stem>-rho.exr (float, "
+        "linear), which `torchiid edit --from` needs for merge and the illumination edits",
+    )
+    d.add_argument(
         "--save-npy",
         action="store_true",
         help="also write float32 linear .npy arrays of reflectance and shading",

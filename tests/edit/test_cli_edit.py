@@ -84,3 +84,15 @@ def test_errors_one_line_and_no_overwrite(files, tmp_path, capsys):
     assert "Stage 1" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
     assert not np.any([p.name.startswith(".torchiid") for p in tmp_path.iterdir()])
+
+
+def test_decompose_save_stage1_folder_serves_every_edit(files, tmp_path):
+    d, _ = files
+    dec = tmp_path / "dec"
+    argv = ["decompose", str(d / "m.png"), "-o", str(dec), "--save-stage1", "--iterations", "1"]
+    assert main([*argv, "--no-progress"]) == 0
+    assert (dec / "m-sigma.exr").is_file() and (dec / "m-rho.exr").is_file()
+    out = tmp_path / "edits"
+    assert main(["edit", "merge", str(d / "m.png"), "--from", str(dec), "-o", str(out)]) == 0
+    a = load_image(d / "m.png").image
+    assert float((a - load_image(out / "m-merge.png").image).abs().max()) < 0.02

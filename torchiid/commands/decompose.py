@@ -63,6 +63,8 @@ def params_from_args(args: argparse.Namespace) -> Parameters:
 def output_names(stem: str, args: argparse.Namespace, params: Parameters) -> list[str]:
     """Every file name ``decompose`` writes for an input of this stem."""
     names = layer_file_names(stem, save_npy=args.save_npy, save_confidence=args.save_confidence)
+    if getattr(args, "save_stage1", False) and args.method == "semantic":
+        names += [f"{stem}-sigma.exr", f"{stem}-rho.exr"]
     if args.save_iterations and args.method == "semantic":
         for k in range(1, params.iterations + 1):
             names += [f"{stem}-iter{k}-{layer}.png" for layer in ("sigma", "rho", "R", "S")]
@@ -110,6 +112,11 @@ def _write_outputs(
         save_npy=args.save_npy,
         output_set=tx,
     )
+    if getattr(args, "save_stage1", False) and result.sigma is not None:
+        # the last Stage 1 layers, exact, for `torchiid edit --from` (merge, illumination)
+        sg, rh = result.sigma[0].cpu(), result.rho[0].cpu()
+        tx.write(f"{stem}-sigma.exr", lambda p: save_image(p, sg, "exr"))
+        tx.write(f"{stem}-rho.exr", lambda p: save_image(p, rh, "exr"))
     if args.save_iterations and getattr(result, "iterations", None):
         named = {"sigma": "sigma", "rho": "rho", "R": "reflectance", "S": "shading"}
         for k, layers in enumerate(result.iterations, start=1):
@@ -238,7 +245,7 @@ def run_decompose(args: argparse.Namespace) -> int:
                             params,
                             mask=mbatch,
                             return_iterations=args.save_iterations,
-                            return_stage1=False,
+                            return_stage1=getattr(args, "save_stage1", False),
                             progress=progress,
                         )
                     finally:
