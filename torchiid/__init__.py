@@ -35,6 +35,7 @@ from torchiid.features import (
     semantic_features,
 )
 from torchiid.io import load_image, load_mask, save_image
+from torchiid.losses import PriorLoss, image_priors
 from torchiid.model import Decomposition, IntrinsicDecomposer, IterationLayers, decompose
 from torchiid.params import Parameters
 from torchiid.solvers.pcg import PCGResult, pcg
@@ -56,6 +57,7 @@ __all__ = [
     "Parameters",
     "ParameterError",
     "PatchFeatures",
+    "PriorLoss",
     "Proposals",
     "ReflectanceResult",
     "SemanticFeatures",
@@ -68,6 +70,7 @@ __all__ = [
     "edit",
     "dssim",
     "efficientnet_lite0",
+    "image_priors",
     "load_image",
     "load_mask",
     "local_mse",

@@ -208,6 +208,33 @@ def _check_inputs(
     return image, mask
 
 
+def _warm_start(
+    init: tuple[torch.Tensor, torch.Tensor],
+    image: torch.Tensor,
+    size: tuple[int, int],
+    mask: torch.Tensor | None,
+    params: Parameters,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(log S0, R0)`` of ``decompose(..., init=(R0, S0))`` at the working resolution."""
+    if not isinstance(init, tuple | list) or len(init) != 2:
+        raise ShapeError("init must be a pair (reflectance, shading) of tensors")
+    r0, s0 = (torch.as_tensor(x).to(device=image.device, dtype=image.dtype) for x in init)
+    r0 = r0[None] if r0.dim() == 3 else r0
+    s0 = s0[None] if s0.dim() == 3 else s0
+    b, _, big_h, big_w = image.shape
+    if tuple(r0.shape) != (b, 3, big_h, big_w):
+        raise ShapeError(f"init reflectance must be {(b, 3, big_h, big_w)}, got {tuple(r0.shape)}")
+    if s0.dim() != 4 or s0.shape[1] not in (1, 3) or tuple(s0.shape[-2:]) != (big_h, big_w):
+        raise ShapeError(f"init shading must be ({b}, 1, {big_h}, {big_w}), got {tuple(s0.shape)}")
+    if not (torch.isfinite(r0).all() and torch.isfinite(s0).all()):
+        raise ShapeError("init contains NaN or infinite values")
+    s0 = downsample(s0.mean(1, keepdim=True), size).clamp_min(params.shading_floor).log()
+    r0 = downsample(r0, size).clamp_min(0)
+    if mask is not None:
+        s0 = s0 * mask
+    return s0.contiguous(), r0.contiguous()
+
+
 @torch.no_grad()
 def decompose(
     image: torch.Tensor,
@@ -218,6 +245,7 @@ def decompose(
     return_iterations: bool = False,
     return_stage1: bool = True,
     progress: Callable[[str, int, int], None] | None = None,
+    init: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> Decomposition:
     """Decompose linear RGB images into reflectance and shading (the paper's full method).
 
@@ -236,6 +264,16 @@ def decompose(
             (``False`` saves two full-resolution layers on large photos).
         progress: called as ``progress(stage, k, total)`` with stage ``"features"`` and then
             ``"iteration"`` after each alternation ``k = 1..total``.
+        init: a warm start ``(R0, S0)`` (e.g. a network's prediction) at the input's
+            resolution: reflectance ``(B, 3, H, W)`` and shading ``(B, 1, H, W)`` (or
+            ``(B, 3, H, W)``, averaged to gray), positive. The first alternation's shading
+            PCG starts from ``log S0`` (instead of the coarse-to-fine cascade; its iterations
+            are then capped by ``params.warm_cg_max_iter`` like later alternations) and
+            its Split-Bregman from ``z = c·R0`` (instead of ``ρ``), ``c`` the least-squares
+            fit of ``R0`` to Stage 1's ``ρ`` (the scale of ``R0 · S0`` does not matter). Only
+            the starting points change, not the energies (the matting base of the first
+            ``S_p`` stays the smoothed image): when the solves converge the result is the
+            cold start's.
 
     Returns:
         :class:`Decomposition` at the input's resolution and dtype. float16 and bfloat16
@@ -292,6 +330,10 @@ def decompose(
     if progress is not None:
         progress("features", 0, params.iterations)
 
+    s_init = z_init = None
+    if init is not None:
+        s_init, z_init = _warm_start(init, image, (h, w), msk, params)
+
     shading_w, refl_w = params.shading_weights(), params.reflectance_weights()
     shading_opt, refl_opt = params.shading_options(), params.reflectance_options()
     s_prev = r_prev = None
@@ -311,10 +353,11 @@ def decompose(
                 base_image=r_prev,
                 mask=msk,
             )
-            sh = solve_shading(problem, shading_w, shading_opt, x0=s_prev, cache=shading_cache)
+            x0 = s_prev if s_prev is not None else s_init
+            sh = solve_shading(problem, shading_w, shading_opt, x0=x0, cache=shading_cache)
             d = sh.diagnostics
             cap = shading_opt.max_iter
-            if s_prev is not None:
+            if x0 is not None:
                 cap = shading_opt.warm_max_iter or shading_opt.max_iter
             solves.append(
                 SolveReport(
@@ -338,7 +381,14 @@ def decompose(
                 segments=features.segments,
                 mask=msk,
             )
-            rr = solve_reflectance(problem, refl_w, refl_opt, z0=r_prev, cache=reflectance_cache)
+            z0 = r_prev
+            if z0 is None and z_init is not None:
+                # the warm start on the scale of this rho (R0 · S0 is ambiguous up to a factor)
+                num = (rho * z_init).flatten(1).sum(1)
+                den = z_init.square().flatten(1).sum(1)
+                c = torch.where(den > 0, num / den.clamp_min(1e-30), 1.0)
+                z0 = z_init * c.view(-1, 1, 1, 1)
+            rr = solve_reflectance(problem, refl_w, refl_opt, z0=z0, cache=reflectance_cache)
             refl = rr.reflectance
             sb = rr.solver
             solves.append(
