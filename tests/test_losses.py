@@ -1,0 +1,75 @@
+"""The priors as differentiable losses (``torchiid.losses``)."""
+
+from __future__ import annotations
+
+import torch
+
+from torchiid.losses import (
+    PriorLoss,
+    image_priors,
+    reconstruction_loss,
+    reflectance_losses,
+    shading_losses,
+)
+from torchiid.model import decompose
+from torchiid.params import Parameters
+from torchiid.synthetic import mondrian
+
+PARAMS = Parameters().replace(patch_size=8, patch_stride=4)
+
+
+def test_gradcheck_float64_tiny():
+    img = mondrian(8, 8, dtype=torch.float64).image
+    params = PARAMS.replace(use_sc=False)  # one 8 px patch: no LLE neighbours
+    loss = PriorLoss(params)
+    priors = loss.priors(img)
+    assert set(priors.shading) == {"S_p", "S_m", "S_l"}
+    g = torch.Generator().manual_seed(0)
+    refl = (0.2 + 0.6 * torch.rand(1, 3, 8, 8, dtype=torch.float64, generator=g)).requires_grad_()
+    shad = (0.3 + torch.rand(1, 1, 8, 8, dtype=torch.float64, generator=g)).requires_grad_()
+    assert torch.autograd.gradcheck(lambda r, s: loss(img, r, s, priors), (refl, shad))
+    # in log space as well
+    log_loss = PriorLoss(params, log_space=True)
+    lr, ls = refl.detach().log().requires_grad_(), shad.detach().log().requires_grad_()
+    assert torch.autograd.gradcheck(lambda r, s: log_loss(img, r, s, priors), (lr, ls))
+
+
+def test_the_image_weights_carry_no_gradient():
+    img = mondrian(12, 12, dtype=torch.float64).image.requires_grad_()
+    pr = image_priors(img, PARAMS)
+    for p in pr.shading.values():
+        assert not p.matvec(torch.ones(1, 1, 12, 12, dtype=torch.float64)).requires_grad
+    for p in pr.reflectance.values():
+        assert not p.apply(torch.ones(1, 3, 12, 12, dtype=torch.float64)).requires_grad
+
+
+def test_components_and_dtype():
+    m = mondrian(16, 16, batch=2)  # float32
+    loss = PriorLoss(PARAMS)
+    pr = loss.priors(m.image)
+    parts = loss.components(m.image, m.reflectance, m.shading, pr)
+    assert set(parts) == {"reconstruction", "S_c", "S_p", "S_m", "S_l", "A", "B", "C"}
+    assert all(v.shape == (2,) and v.dtype == torch.float32 for v in parts.values())
+    total = loss(m.image, m.reflectance, m.shading, pr)
+    torch.testing.assert_close(total, torch.stack(list(parts.values())).sum(0).mean())
+    # the unweighted pieces
+    assert set(shading_losses(m.shading.log(), pr.shading)) == {"S_c", "S_p", "S_m", "S_l"}
+    assert set(reflectance_losses(m.reflectance, pr.reflectance)) == {"A", "B", "C"}
+    torch.testing.assert_close(
+        reconstruction_loss(m.image, m.reflectance, m.shading), torch.zeros(2), atol=1e-8, rtol=0
+    )
+    only_rec = PriorLoss(PARAMS, use_shading=False, use_reflectance=False)
+    assert set(only_rec.components(m.image, m.reflectance, m.shading)) == {"reconstruction"}
+
+
+def test_the_methods_decomposition_beats_r_equals_i():
+    img = mondrian(32, 32, dtype=torch.float64).image
+    params = PARAMS.replace(iterations=2)
+    out = decompose(img, params)
+    loss = PriorLoss(params)
+    pr = loss.priors(img)
+    method = loss(img, out.reflectance, out.shading, pr)
+    trivial = loss(img, img, torch.ones_like(out.shading), pr)
+    assert float(method) < float(trivial)
+    parts = loss.components(img, out.reflectance, out.shading, pr)
+    assert float(parts["reconstruction"].max()) < 1e-8  # R · S == I exactly
