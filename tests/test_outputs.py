@@ -32,7 +32,9 @@ def test_full_resolution_layers_make_reflectance_an_albedo():
     assert float(out.reflectance.max()) <= 1.0 and float(out.reflectance.min()) >= 0
     for i in range(2):
         peak = out.reflectance[i].amax(0)[mask[i, 0]]
-        assert float(torch.quantile(peak, 0.999)) == pytest.approx(1.0, abs=1e-3)
+        assert float(torch.quantile(peak, 0.999, interpolation="higher")) == pytest.approx(
+            1.0, abs=1e-3
+        )
         # the pixels above the quantile moved their excess into the shading
         assert 0 < float(out.albedo_excess[i]) <= 0.001 + 1 / peak.numel()
         q99 = torch.quantile(out.shading[i][mask[i]], 0.99)
@@ -226,3 +228,23 @@ def test_half_precision_is_solved_in_float32(dtype):
     assert float((out.reflectance.float() - ref.reflectance).abs().max()) <= tol
     rel = (out.shading.float() - ref.shading).abs() / ref.shading
     assert float(rel.max()) <= tol
+
+
+def test_masked_working_resolution_has_no_seam_at_the_mask_edge():
+    # constant light on two albedos, a disc mask, solved at a quarter of the size: the
+    # shading along the inside of the mask's edge must match the unmasked solve's (the
+    # outside, blacked out at the working resolution, must not bend the guided fit; before
+    # the weighted fit the ratio reached 1.125 on this ring)
+    size = 256
+    yy, xx = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
+    refl = torch.full((1, 3, size, size), 0.3)
+    refl[..., :, : size // 2] = torch.tensor([0.6, 0.4, 0.2]).view(1, 3, 1, 1)
+    img = refl * 0.8
+    r2 = (yy - 128) ** 2 + (xx - 128) ** 2
+    disc, ring, inner = r2 < 100**2, (r2 < 100**2) & (r2 > 97**2), r2 < 80**2
+    p = Parameters().replace(iterations=2, max_side=64)
+    masked = decompose(img, p, mask=disc[None, None])
+    free = decompose(img, p)
+    ratio = (masked.shading / free.shading)[0, 0]
+    rel = ratio[ring] / ratio[inner].median()
+    assert float(rel.min()) > 0.98 and float(rel.max()) < 1.02  # measured 0.9994-1.0037

@@ -32,6 +32,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from torchiid.core.exceptions import ParameterError, ShapeError
+from torchiid.core.stats import image_quantile
 
 __all__ = [
     "COLOURS",
@@ -175,8 +176,8 @@ def _mask(mask: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
 
 def _white(shading: torch.Tensor, q: float = 0.99) -> torch.Tensor:
     """``(B, 1, 1, 1)`` ``q`` quantile of each image's shading luminance (>= eps)."""
-    y = shading.mean(1).flatten(1)
-    return torch.quantile(y.float(), q, dim=1).clamp_min(_EPS).view(-1, 1, 1, 1).to(shading)
+    y = shading.mean(1, keepdim=True)
+    return image_quantile(y, q).clamp_min(_EPS).view(-1, 1, 1, 1).to(shading)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -289,7 +290,7 @@ def light_weights(
     if radius <= 0:
         raise ParameterError(f"radius must be > 0, got {radius}")
     y = shading.mean(1, keepdim=True)
-    q = torch.quantile(y.flatten(1).float(), percentile, dim=1).view(-1, 1, 1, 1).to(y)
+    q = image_quantile(y, percentile).view(-1, 1, 1, 1).to(y)
     light = (y >= q).cpu().numpy()
     r = radius * max(shading.shape[-2:])
     out = np.empty(light.shape, np.float32)

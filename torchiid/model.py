@@ -19,7 +19,6 @@ on the longer side); the shading is brought back to the input's resolution edge-
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -29,6 +28,7 @@ from torch import nn
 
 from torchiid.core.check import as_mask, check_image
 from torchiid.core.exceptions import ParameterError, ShapeError
+from torchiid.core.stats import image_quantile, subgrid
 from torchiid.features.semantic import SemanticFeatures, semantic_features
 from torchiid.params import Parameters
 from torchiid.priors.shading_terms import pixel_confidence
@@ -125,7 +125,8 @@ class Decomposition:
             common convention (bright lit surfaces have shading 1).
         albedo_excess: ``(B,)`` fraction of the pixels inside the mask whose reflectance
             exceeded 1 and had the excess moved into the shading (at most
-            ``1 - albedo_quantile`` by construction).
+            ``1 - albedo_quantile`` on the sub-grid the quantile is taken on, so about that
+            share of the full image).
         working_size: ``(h, w)`` the resolution the method ran at.
         solves: one :class:`SolveReport` per stage and alternation.
     """
@@ -224,7 +225,12 @@ def _warm_start(
     b, _, big_h, big_w = image.shape
     if tuple(r0.shape) != (b, 3, big_h, big_w):
         raise ShapeError(f"init reflectance must be {(b, 3, big_h, big_w)}, got {tuple(r0.shape)}")
-    if s0.dim() != 4 or s0.shape[1] not in (1, 3) or tuple(s0.shape[-2:]) != (big_h, big_w):
+    if (
+        s0.dim() != 4
+        or s0.shape[0] != b
+        or s0.shape[1] not in (1, 3)
+        or tuple(s0.shape[-2:]) != (big_h, big_w)
+    ):
         raise ShapeError(f"init shading must be ({b}, 1, {big_h}, {big_w}), got {tuple(s0.shape)}")
     if not (torch.isfinite(r0).all() and torch.isfinite(s0).all()):
         raise ShapeError("init contains NaN or infinite values")
@@ -465,23 +471,6 @@ class FullLayers:
     albedo_excess: torch.Tensor
 
 
-def _subsample(x: torch.Tensor, limit: int = 1 << 20) -> tuple[torch.Tensor, int]:
-    """A regular sub-grid of ``(B, C, H, W)`` with at most about ``limit`` pixels per image."""
-    step = max(1, int(math.ceil(math.sqrt(x.shape[-2] * x.shape[-1] / limit))))
-    return x[..., ::step, ::step], step
-
-
-def _masked_quantiles(
-    x: torch.Tensor, mask: torch.Tensor | None, q: float, default: float
-) -> torch.Tensor:
-    """Per-image ``q``-quantile of ``(B, 1, h, w)`` inside the mask, ``(B,)``."""
-    out = []
-    for i in range(x.shape[0]):
-        v = x[i].reshape(-1) if mask is None else x[i][mask[i]].reshape(-1)
-        out.append(torch.quantile(v.float(), q) if v.numel() else torch.tensor(default))
-    return torch.stack(out).to(x.device, x.dtype)
-
-
 def full_resolution_layers(
     image: torch.Tensor,
     shading_low: torch.Tensor,
@@ -522,18 +511,22 @@ def full_resolution_layers(
     if tuple(log_low.shape[-2:]) == (big_h, big_w):
         torch.exp(log_low, out=shading)
     else:
+        weight = None
+        if mask is not None:  # the outside (blacked out, shading 1) must not enter the fits
+            weight = downsample(mask.to(image.dtype), tuple(log_low.shape[-2:]))
         up = GuidedUpsampler(
-            log_low, guide_low, (big_h, big_w), params.guide_radius, params.guide_eps
+            log_low, guide_low, (big_h, big_w), params.guide_radius, params.guide_eps, weight
         )
         for rows in row_bands(big_h, big_w):
             band = up.band(rows, _log_luminance(image[:, :, rows], params.dark_eps))
             shading[:, :, rows] = band.exp_()
     shading.clamp_min_(params.shading_floor)
     # global scale from a sub-grid (about a megapixel is plenty for a quantile)
-    img_s, step = _subsample(image)
+    img_s, step = subgrid(image)
     peak_s = (img_s / shading[..., ::step, ::step]).amax(1, keepdim=True)
     msk_s = None if mask is None else mask[..., ::step, ::step]
-    k = _masked_quantiles(peak_s, msk_s, params.albedo_quantile, 1.0)
+    # "higher": at most a 1 - albedo_quantile share of the (sub-grid) pixels lies above k
+    k = image_quantile(peak_s, params.albedo_quantile, msk_s, interpolation="higher")
     k = torch.where(k > 1e-12, k, torch.ones_like(k)).view(b, 1, 1, 1)  # black image: R = 0
     reflectance = image.new_empty(b, 3, big_h, big_w)
     moved = torch.zeros(b, device=image.device, dtype=torch.float64)
@@ -556,7 +549,7 @@ def full_resolution_layers(
     else:
         area = torch.full((b,), float(big_h * big_w), dtype=torch.float64, device=image.device)
     shade_s = shading[..., ::step, ::step]
-    white = _masked_quantiles(shade_s, msk_s, params.view_quantile, 1.0)
+    white = image_quantile(shade_s, params.view_quantile, msk_s)
     white = torch.where(white > 0, white, torch.ones_like(white))
     return FullLayers(reflectance, shading, white, (moved / area).to(torch.float32))
 

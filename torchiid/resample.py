@@ -96,6 +96,9 @@ class GuidedUpsampler:
         size: the full resolution ``(H, W)``.
         radius: box radius of the local linear fit, in low-resolution pixels.
         eps: regulariser of the fit (in squared guide units).
+        weight: optional ``(B, 1, h, w)`` weights in [0, 1] of the low-resolution pixels (the
+            share of each inside a mask): every box mean of the fit is weighted, so pixels
+            outside a mask, whose values mean nothing, do not bend the fit near its edge.
 
     Call :meth:`band` with the full-resolution guide's rows to get those rows of the result.
     """
@@ -107,15 +110,35 @@ class GuidedUpsampler:
         size: tuple[int, int],
         radius: int = 2,
         eps: float = 1e-3,
+        weight: torch.Tensor | None = None,
     ) -> None:
-        mean_g = _box(guide_low, radius)
-        mean_x = _box(low, radius)
-        cov = _box(guide_low * low, radius) - mean_g * mean_x
-        var = _box(guide_low * guide_low, radius) - mean_g * mean_g
+        if weight is None:
+
+            def box(x: torch.Tensor) -> torch.Tensor:
+                return _box(x, radius)
+
+        else:  # weighted means: pixels of weight 0 (outside a mask) do not enter any fit
+            den = _box(weight, radius)
+            inv = torch.where(den > 1e-6, 1 / den.clamp_min(1e-6), torch.zeros_like(den))
+
+            def box(x: torch.Tensor) -> torch.Tensor:
+                return _box(weight * x, radius) * inv
+
+        mean_g = box(guide_low)
+        mean_x = box(low)
+        cov = box(guide_low * low) - mean_g * mean_x
+        var = box(guide_low * guide_low) - mean_g * mean_g
         a = cov / (var + eps)
         b = mean_x - a * mean_g
-        self.a = _box(a, radius)
-        self.b = _box(b, radius)
+        if weight is not None:  # windows with no pixel inside: constant continuation
+            a = torch.where(den > 1e-6, a, torch.zeros_like(a))
+            b = torch.where(den > 1e-6, b, low)
+            self.a, self.b = box(a), box(b)
+            self.a = torch.where(den > 1e-6, self.a, a)
+            self.b = torch.where(den > 1e-6, self.b, b)
+        else:
+            self.a = _box(a, radius)
+            self.b = _box(b, radius)
         self.size = (int(size[0]), int(size[1]))
 
     def band(self, rows: slice, guide_rows: torch.Tensor) -> torch.Tensor:

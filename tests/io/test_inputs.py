@@ -25,4 +25,5 @@ def test_a_directory_without_images_is_an_error(tmp_path):
 
 
 def test_suffixes():
-    assert {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".npy"} == IMAGE_SUFFIXES
+    exts = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".exr", ".npy"}
+    assert exts == IMAGE_SUFFIXES  # every format load_image reads, OpenEXR included

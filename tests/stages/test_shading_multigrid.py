@@ -52,9 +52,12 @@ def test_hierarchy_is_reused_while_it_keeps_its_iteration_count(photo):
     second = solve_shading(ShadingProblem(photo), weights.step(1.2), opts, cache=cache)
     assert second.diagnostics.converged and cache.preconditioner is built
     assert "preconditioner" not in second.diagnostics.times
-    # a system that drifted far (here: another base image) makes it rebuild next time
+    # a system that drifted far (here: another base image): the reused hierarchy misses the
+    # tolerance within 2 x 26 + 5 iterations (measured 68 needed), so the same solve rebuilds
+    # it and goes on, and still converges
+    fresh = cache.fresh_iterations
     base = photo / photo.mean(1, keepdim=True).clamp_min(1e-3)
     third = solve_shading(ShadingProblem(photo, base_image=base), weights, opts, cache=cache)
-    assert third.diagnostics.converged
-    assert third.diagnostics.iterations > 2 * cache.fresh_iterations + 5  # measured 68 vs 26
-    assert cache.preconditioner is None
+    assert third.diagnostics.converged and third.diagnostics.iterations > 2 * fresh + 5
+    assert "preconditioner" in third.diagnostics.times
+    assert cache.preconditioner is not None and cache.preconditioner is not built

@@ -10,11 +10,10 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-
 from torchiid.baselines.retinex import retinex_decomposition
 from torchiid.core.device import resolve_device
 from torchiid.core.exceptions import ImageError, ParameterError, TorchiidError
+from torchiid.core.stats import image_quantile
 from torchiid.io import load_image, load_mask, save_image
 from torchiid.io.inputs import collect_inputs
 from torchiid.io.layers import (
@@ -97,7 +96,17 @@ def _write_outputs(
         "seconds": round(seconds, 3),
         "converged": result.converged,
         "solves": [str(r) for r in result.solves],
+        "files": {},
     }
+    if getattr(args, "save_stage1", False) and result.sigma is not None:
+        info["files"][f"{stem}-sigma.exr"] = "last Stage 1 shading sigma, float32 linear OpenEXR"
+        info["files"][f"{stem}-rho.exr"] = "last Stage 1 reflectance rho, float32 linear OpenEXR"
+    if args.save_iterations and getattr(result, "iterations", None):
+        for k in range(1, len(result.iterations) + 1):
+            for name in ("sigma", "rho", "R", "S"):
+                info["files"][f"{stem}-iter{k}-{name}.png"] = (
+                    f"alternation {k}'s {name} at the working resolution, 8-bit sRGB"
+                )
     write_layers(
         tx.out,
         stem,
@@ -123,7 +132,7 @@ def _write_outputs(
             for name, attr in named.items():
                 x = getattr(layers, attr)[0].cpu()
                 if name in ("sigma", "S"):
-                    x = x / torch.quantile(x.flatten(), params.view_quantile).clamp_min(1e-12)
+                    x = x / image_quantile(x[None], params.view_quantile).clamp_min(1e-12)[0]
                 tx.write(f"{stem}-iter{k}-{name}.png", lambda p, x=x: save_image(p, x, "srgb8"))
 
 

@@ -9,7 +9,7 @@ from torchiid.core.exceptions import TorchiidError
 
 __all__ = ["IMAGE_SUFFIXES", "collect_inputs"]
 
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".npy"}
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".exr", ".npy"}
 """File suffixes (lower case) taken from a folder by :func:`collect_inputs`."""
 
 

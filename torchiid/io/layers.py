@@ -395,7 +395,8 @@ def write_layers(
         reflectance: ``(3, H, W)`` linear albedo in [0, 1].
         shading: ``(1, H, W)`` linear gray shading.
         shading_white: the shading value shown as white in the viewable PNG.
-        info: extra entries for ``-info.json``.
+        info: extra entries for ``-info.json``; its ``"files"`` (name -> description) are added
+            to the list of files, for files the caller writes into the same set.
         params_json: text of ``-params.json`` (omitted when ``None``).
         mask: ``(1, H, W)`` bool; outside it the EXR shading is 0 like the layers.
         confidence: ``(1, H, W)`` in [0, 1]: written as ``-confidence.png`` when given.
@@ -486,10 +487,14 @@ def write_layers(
             "(R*shading_white, S/shading_white) is the convention where the shading's 99th "
             "percentile is 1."
         ),
-        **(dict(info) if info else {}),
+        **{k: v for k, v in (info or {}).items() if k != "files"},
         "files": {
-            f"{stem}-{k}": DESCRIPTIONS[k]
-            for k in [*files, "info.json"] + (["params.json"] if params_json is not None else [])
+            **{
+                f"{stem}-{k}": DESCRIPTIONS[k]
+                for k in [*files, "info.json"]
+                + (["params.json"] if params_json is not None else [])
+            },
+            **dict((info or {}).get("files", {})),  # files the caller adds to the set
         },
     }
     put("info.json", _write_text(json.dumps(record, indent=2, allow_nan=False) + "\n"))

@@ -135,8 +135,9 @@ class ShadingOptions:
             Galerkin multigrid V-cycle, :class:`~torchiid.solvers.multigrid.GalerkinMultigrid`,
             CPU or GPU: 10–15 iterations to 1e-4 where Jacobi needs 600–1500) or ``"amg"``
             (pyamg smoothed aggregation, CPU only). A multigrid hierarchy is built in the first
-            alternation and reused by the later ones (kept in the :class:`ShadingSystemCache`)
-            until it needs more than twice the iterations it needed when fresh.
+            alternation and reused by the later ones (kept in the :class:`ShadingSystemCache`);
+            a reused hierarchy that has not converged after ``2 × (its fresh count) + 5``
+            iterations is rebuilt and the solve goes on from where it stopped.
     """
 
     t_c: float = 1e-4

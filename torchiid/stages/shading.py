@@ -31,6 +31,7 @@ term) are the tested reference.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 import warnings
@@ -416,14 +417,24 @@ def solve_shading(
         check_finite(x0, "x0")
         start = x0.to(dt) * m
     t0 = time.perf_counter()
-    res = pcg(matvec, rhs, x0=start, precond=precond, tol=o.tol, max_iter=max_iter, warn=False)
+    reused = o.preconditioner != "jacobi" and not fresh
+    budget = min(max_iter, 2 * cache.fresh_iterations + 5) if reused else max_iter
+    res = pcg(matvec, rhs, x0=start, precond=precond, tol=o.tol, max_iter=budget, warn=False)
+    if reused and not res.converged and res.iterations < max_iter:
+        # the system drifted from the one the hierarchy was built for: rebuild it and go on
+        # from the current iterate in this same solve
+        t1 = time.perf_counter()
+        precond, fresh = _multigrid(o.preconditioner, system, extra, mask), True
+        times["preconditioner"] = time.perf_counter() - t1
+        more = pcg(
+            matvec, rhs, x0=res.x, precond=precond, tol=o.tol,
+            max_iter=max_iter - res.iterations, warn=False,
+        )  # fmt: skip
+        res = dataclasses.replace(more, iterations=res.iterations + more.iterations)
     _sync(dev)
     times["solve"] = time.perf_counter() - t0
-    if cache is not None and o.preconditioner != "jacobi":
-        if fresh:
-            cache.preconditioner, cache.fresh_iterations = precond, res.iterations
-        elif res.iterations > 2 * cache.fresh_iterations + 5 or not res.converged:
-            cache.preconditioner = None  # the system drifted: rebuild for the next solve
+    if cache is not None and fresh:
+        cache.preconditioner, cache.fresh_iterations = precond, res.iterations
     s = res.x * m
     s = s + (target - (s * m).flatten(1).sum(1).view(b, 1, 1, 1) / area) * m
     if o.warn and not res.converged:
