@@ -64,7 +64,8 @@ def add_edit_parser(sub) -> None:
     p.add_argument(
         "--no-merge",
         action="store_true",
-        help="edit Stage 2's R and S instead of the merged components",
+        help="edit Stage 2's R and S instead of the merged components (illumination-intensity "
+        "is defined from both stages and always uses them)",
     )
     p.add_argument("--blur", type=float, help="Gaussian sigma in px of the merge's residue filter")
     p.add_argument("--tint", default="red", help="illumination-colour: name, R,G,B or #rrggbb")
@@ -210,7 +211,7 @@ def run_edit(args: argparse.Namespace) -> int:
     elif op == "illumination-intensity":
         strength = 0.5 if args.strength is None else args.strength
         result_img, new_s = edit.illumination_intensity(
-            batch, r, s, sigma, rho, strength, combine=args.combine, blur=None, merged=merged
+            batch, r, s, sigma, rho, strength, combine=args.combine, blur=args.blur, merged=merged
         )
         layers = {"shading": new_s}
     elif op == "remove-texture":
