@@ -42,10 +42,10 @@ from torchiid.solvers.multigrid import (
     GalerkinMultigrid,
     HSCPreconditioner,
     StencilOperator,
-    anchored_system,
     pcg_callable,
 )
 from torchiid.stages import ShadingProblem, build_shading_system, solve_shading
+from torchiid.stages.shading import anchored_system
 
 
 def photo(name: str, width: int) -> torch.Tensor:

@@ -31,7 +31,6 @@ from torchiid.core.check import as_mask
 from torchiid.features.semantic import SemanticFeatures, semantic_features
 from torchiid.params import Parameters
 from torchiid.priors.api import ReflectancePrior, ShadingPrior, reflectance_priors, shading_priors
-from torchiid.stages.config import ReflectanceProblem, ShadingProblem
 from torchiid.stages.reflectance import build_reflectance_terms
 from torchiid.stages.shading import build_shading_system
 
@@ -99,25 +98,12 @@ def image_priors(
     if features is None:
         features = semantic_features(image, params)
     sh = build_shading_system(
-        ShadingProblem(
-            image=image,
-            patch_centers=features.patch_centers,
-            patch_features=features.patch_features,
-            similarity=features.similarity,
-            base_image=base_image,
-            mask=msk,
-        ),
+        features.shading_problem(image, base_image=base_image, mask=msk),
         params.shading_weights(alternation),
         params.shading_options(),
     )
     rt = build_reflectance_terms(
-        ReflectanceProblem(
-            rho=(image if rho is None else rho).clamp_min(0),
-            image=image,
-            gpca=features.gpca,
-            segments=features.segments,
-            mask=msk,
-        ),
+        features.reflectance_problem(image if rho is None else rho, image, mask=msk),
         params.reflectance_weights(alternation),
         params.reflectance_options().replace(merge_stencil_terms=merge),
     )

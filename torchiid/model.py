@@ -33,7 +33,6 @@ from torchiid.features.semantic import SemanticFeatures, semantic_features
 from torchiid.params import Parameters
 from torchiid.priors.shading_terms import pixel_confidence
 from torchiid.resample import GuidedUpsampler, downsample, row_bands, working_size
-from torchiid.stages.config import ReflectanceProblem, ShadingProblem
 from torchiid.stages.reflectance import ReflectanceCache, solve_reflectance
 from torchiid.stages.shading import ShadingSystemCache, solve_shading
 
@@ -351,14 +350,7 @@ def decompose(
     for k in range(1, params.iterations + 1):
         t0 = time.perf_counter()
         if shading_w.active:
-            problem = ShadingProblem(
-                image=img,
-                patch_centers=features.patch_centers,
-                patch_features=features.patch_features,
-                similarity=features.similarity,
-                base_image=r_prev,
-                mask=msk,
-            )
+            problem = features.shading_problem(img, base_image=r_prev, mask=msk)
             x0 = s_prev if s_prev is not None else s_init
             sh = solve_shading(problem, shading_w, shading_opt, x0=x0, cache=shading_cache)
             d = sh.diagnostics
@@ -380,13 +372,7 @@ def decompose(
         times[f"shading {k}"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if refl_w.active:
-            problem = ReflectanceProblem(
-                rho=rho.clamp_min(0),
-                image=img,
-                gpca=features.gpca,
-                segments=features.segments,
-                mask=msk,
-            )
+            problem = features.reflectance_problem(rho, img, mask=msk)
             z0 = r_prev
             if z0 is None and z_init is not None:
                 # the warm start on the scale of this rho (R0 · S0 is ambiguous up to a factor)

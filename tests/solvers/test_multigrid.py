@@ -9,11 +9,11 @@ from torchiid.solvers.multigrid import (
     GalerkinMultigrid,
     HSCPreconditioner,
     StencilOperator,
-    anchored_system,
     assemble_csr,
     pcg_callable,
 )
 from torchiid.stages import ShadingProblem, build_shading_system
+from torchiid.stages.shading import anchored_system
 
 
 @pytest.fixture(scope="module")

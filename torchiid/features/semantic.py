@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from torchiid.params import Parameters
+from torchiid.stages.config import ReflectanceProblem, ShadingProblem
 
 __all__ = ["SemanticFeatures", "semantic_features", "patch_mean_rgb"]
 
@@ -43,6 +44,30 @@ class SemanticFeatures:
     segments: torch.Tensor | None
     midlevel: object | None = None
     times: dict[str, float] = field(default_factory=dict)
+
+    def shading_problem(
+        self,
+        image: torch.Tensor,
+        base_image: torch.Tensor | None = None,
+        mask: torch.Tensor | None = None,
+    ) -> ShadingProblem:
+        """Stage 1's problem on ``image`` with these features (``S_c``'s and ``S_m``'s inputs)."""
+        return ShadingProblem(
+            image=image,
+            patch_centers=self.patch_centers,
+            patch_features=self.patch_features,
+            similarity=self.similarity,
+            base_image=base_image,
+            mask=mask,
+        )
+
+    def reflectance_problem(
+        self, rho: torch.Tensor, image: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> ReflectanceProblem:
+        """Stage 2's problem for ``rho`` (clamped at 0) with these features (``B``'s, ``C``'s)."""
+        return ReflectanceProblem(
+            rho=rho.clamp_min(0), image=image, gpca=self.gpca, segments=self.segments, mask=mask
+        )
 
 
 def patch_mean_rgb(image: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:

@@ -2,24 +2,20 @@
 
 from torchiid.solvers.multigrid import (
     AMGPreconditioner,
-    AnchoredSystem,
     GalerkinMultigrid,
     HSCPreconditioner,
     PCGHistory,
     StencilOperator,
-    anchored_system,
     assemble_csr,
     pcg_callable,
 )
 
 __all__ = [
     "AMGPreconditioner",
-    "AnchoredSystem",
     "GalerkinMultigrid",
     "HSCPreconditioner",
     "PCGHistory",
     "StencilOperator",
-    "anchored_system",
     "assemble_csr",
     "pcg_callable",
 ]

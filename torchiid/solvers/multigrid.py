@@ -1,9 +1,10 @@
 """Multigrid preconditioners for the shading solve (issue 11), and a PCG that records its history.
 
 The shading system ``A = D_m Psi D_m + diag(extra)`` (Eq. 1 plus the gauge anchor and the pinning
-of masked-out pixels, see :func:`anchored_system`) is a 5x5-stencil graph Laplacian with
-near-binary, strongly discontinuous weights (Retinex ``t_c = 1e-4``), a few small positive
-off-diagonals (the matting Laplacian) and a handful of non-local rows (the LLE term ``S_c``).
+of masked-out pixels, see :func:`~torchiid.stages.shading.anchored_system`) is a 5x5-stencil graph
+Laplacian with near-binary, strongly discontinuous weights (Retinex ``t_c = 1e-4``), a few small
+positive off-diagonals (the matting Laplacian) and a handful of non-local rows (the LLE term
+``S_c``).
 Jacobi-preconditioned CG needs hundreds to thousands of iterations on it. Two multigrid
 V-cycles bring that to about ten; both are fixed, symmetric positive definite linear operators,
 so plain (non-flexible) PCG stays valid:
@@ -49,8 +50,6 @@ from torchiid.priors.quadratic import (
 from torchiid.priors.stencil import shift_slices
 
 __all__ = [
-    "AnchoredSystem",
-    "anchored_system",
     "StencilOperator",
     "GalerkinMultigrid",
     "AMGPreconditioner",
@@ -64,80 +63,6 @@ __all__ = [
 # ---------------------------------------------------------------------------------------------
 # the anchored system of solve_shading
 # ---------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class AnchoredSystem:
-    """The linear system :func:`~torchiid.stages.shading.solve_shading` hands to PCG.
-
-    Attributes:
-        total: ``Psi``, the weighted sum of the priors (without anchor).
-        matvec: ``x -> A x`` with ``A = D_m Psi D_m + diag(extra)``.
-        rhs: ``(B, 1, H, W)`` right-hand side.
-        x0: ``(B, 1, H, W)`` cold start (the target mean ``t`` inside the mask).
-        extra: ``(B, 1, H, W)`` the added diagonal ``alpha m + (1 - m)``.
-        mask: ``(B, 1, H, W)`` float 0/1 mask, or ``None`` (everything inside).
-        jacobi: ``(B, 1, H, W)`` the inverse diagonal of ``A``.
-    """
-
-    total: QuadraticTerm
-    matvec: Callable[[torch.Tensor], torch.Tensor]
-    rhs: torch.Tensor
-    x0: torch.Tensor
-    extra: torch.Tensor
-    mask: torch.Tensor | None
-    jacobi: torch.Tensor
-
-
-def anchored_system(
-    total: QuadraticTerm,
-    image: torch.Tensor,
-    mask: torch.Tensor | None,
-    anchor: float,
-    dark_eps: float,
-) -> AnchoredSystem:
-    """The anchored, masked operator, right-hand side and cold start of ``solve_shading``.
-
-    Mirrors :func:`~torchiid.stages.shading.solve_shading` (same formulas), for benchmarks and
-    for building a preconditioner of exactly the matrix PCG sees.
-
-    Args:
-        total: ``build_shading_system(...).total``.
-        image: ``(B, 3, H, W)`` linear RGB.
-        mask: ``(B, 1, H, W)`` bool or ``None``.
-        anchor: ``options.anchor``.
-        dark_eps: ``options.dark_eps``.
-
-    Returns:
-        :class:`AnchoredSystem`.
-    """
-    from torchiid.priors.shading_terms import intensity
-
-    b, _, h, w = image.shape
-    dt, dev = total.dtype, total.device
-    m = torch.ones(b, 1, h, w, dtype=dt, device=dev) if mask is None else mask.to(dt)
-    area = m.flatten(1).sum(1).view(b, 1, 1, 1)
-    target = (intensity(image, dark_eps).log() * m).flatten(1).sum(1).view(b, 1, 1, 1) / area
-    diag = total.diagonal() * m
-    alpha = anchor * diag.flatten(1).sum(1).view(b, 1, 1, 1) / area
-    alpha = torch.where(alpha > 0, alpha, torch.full_like(alpha, anchor))
-    rhs = (total.rhs() + alpha * target) * m
-    extra = alpha * m + (1 - m)
-
-    def matvec(x: torch.Tensor) -> torch.Tensor:
-        if mask is None:
-            return total.matvec(x).addcmul_(extra, x)
-        return total.matvec(m * x).mul_(m).addcmul_(extra, x)
-
-    return AnchoredSystem(
-        total=total,
-        matvec=matvec,
-        rhs=rhs,
-        x0=target * m,
-        extra=extra,
-        mask=None if mask is None else m,
-        jacobi=1 / (diag + extra),
-    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -999,7 +924,27 @@ def assemble_csr(
     return mat.tocsr()
 
 
-class AMGPreconditioner:
+class _FromCSR:
+    """``from_system`` of the preconditioners built from a scipy CSR matrix."""
+
+    setup_time: float
+
+    @classmethod
+    def from_system(
+        cls,
+        total: QuadraticTerm,
+        extra_diag: torch.Tensor | None = None,
+        mask: torch.Tensor | None = None,
+        **kwargs: object,
+    ):  # noqa: ANN206 (the subclass)
+        """Assemble (:func:`assemble_csr`) and build; ``setup_time`` includes the assembly."""
+        t0 = time.perf_counter()
+        out = cls(assemble_csr(total, extra_diag, mask), total.shape, **kwargs)
+        out.setup_time = time.perf_counter() - t0
+        return out
+
+
+class AMGPreconditioner(_FromCSR):
     """pyamg smoothed-aggregation V-cycle as a torch preconditioner (CPU).
 
     Settings chosen by measurement on the shading systems (256x192 to 1024x768, alternations
@@ -1062,21 +1007,6 @@ class AMGPreconditioner:
         self._m = self.ml.aspreconditioner(cycle=cycle)
         self.dtype = dtype
         self.setup_time = time.perf_counter() - t0
-
-    @classmethod
-    def from_system(
-        cls,
-        total: QuadraticTerm,
-        extra_diag: torch.Tensor | None = None,
-        mask: torch.Tensor | None = None,
-        **kwargs: object,
-    ) -> AMGPreconditioner:
-        """Assemble (:func:`assemble_csr`) and build; ``setup_time`` includes the assembly."""
-        t0 = time.perf_counter()
-        mat = assemble_csr(total, extra_diag, mask)
-        out = cls(mat, total.shape, **kwargs)
-        out.setup_time = time.perf_counter() - t0
-        return out
 
     def apply(self, r: torch.Tensor) -> torch.Tensor:
         """``M^{-1} r`` for ``r`` ``(B, 1, H, W)`` (CPU)."""
@@ -1141,7 +1071,7 @@ def _compensate(w, drop_i, drop_j, drop_w, path_mask, factor):  # noqa: ANN001, 
     return inc, lost
 
 
-class HSCPreconditioner:
+class HSCPreconditioner(_FromCSR):
     """Hierarchical sparsify-and-compensate preconditioner (Krishnan, Fattal & Szeliski 2013).
 
     Our algebraic reading of the paper for these image systems (CPU, scipy):
@@ -1290,20 +1220,6 @@ class HSCPreconditioner:
         self._coarse_nodes = nodes
         self._coarse = _DenseSPD(torch.from_numpy(dense)[None])
         self.setup_time = time.perf_counter() - t0
-
-    @classmethod
-    def from_system(
-        cls,
-        total: QuadraticTerm,
-        extra_diag: torch.Tensor | None = None,
-        mask: torch.Tensor | None = None,
-        **kwargs: object,
-    ) -> HSCPreconditioner:
-        """Assemble (:func:`assemble_csr`) and build; ``setup_time`` includes the assembly."""
-        t0 = time.perf_counter()
-        out = cls(assemble_csr(total, extra_diag, mask), total.shape, **kwargs)
-        out.setup_time = time.perf_counter() - t0
-        return out
 
     def apply(self, r: torch.Tensor) -> torch.Tensor:
         """``M^{-1} r`` for ``r`` ``(B, 1, H, W)`` (CPU; computed in float64)."""

@@ -35,6 +35,7 @@ import dataclasses
 import logging
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -58,6 +59,8 @@ from torchiid.solvers.pcg import pcg
 from torchiid.stages.config import ShadingOptions, ShadingProblem, ShadingWeights
 
 __all__ = [
+    "AnchoredSystem",
+    "anchored_system",
     "ShadingDiagnostics",
     "ShadingSystem",
     "ShadingResult",
@@ -195,6 +198,78 @@ def _default_base(image: torch.Tensor, mask: torch.Tensor | None, sigma: float) 
     num = smooth_base(image * m, sigma)
     den = smooth_base(m, sigma)
     return torch.where(den > 0, num / den.clamp_min(1e-12), image) * m
+
+
+@dataclass(frozen=True)
+class AnchoredSystem:
+    """The linear system :func:`solve_shading` hands to PCG (the one place of its formulas).
+
+    Attributes:
+        total: ``Psi``, the weighted sum of the priors (without anchor).
+        matvec: ``x -> A x`` with ``A = D_m Psi D_m + diag(extra)``.
+        rhs: ``(B, 1, H, W)`` right-hand side.
+        target: ``(B, 1, 1, 1)`` mean ``log p`` inside the mask (the gauge of ``s``).
+        inside: ``(B, 1, H, W)`` float 0/1 mask (ones without a mask).
+        area: ``(B, 1, 1, 1)`` pixels inside.
+        extra: ``(B, 1, H, W)`` the added diagonal ``alpha m + (1 - m)``.
+        jacobi: ``(B, 1, H, W)`` the inverse diagonal of ``A``.
+    """
+
+    total: QuadraticTerm
+    matvec: Callable[[torch.Tensor], torch.Tensor]
+    rhs: torch.Tensor
+    target: torch.Tensor
+    inside: torch.Tensor
+    area: torch.Tensor
+    extra: torch.Tensor
+    jacobi: torch.Tensor
+
+    @property
+    def x0(self) -> torch.Tensor:
+        """The cold start: the target mean inside the mask."""
+        return self.target * self.inside
+
+
+def anchored_system(
+    total: QuadraticTerm,
+    image: torch.Tensor,
+    mask: torch.Tensor | None,
+    anchor: float,
+    dark_eps: float,
+) -> AnchoredSystem:
+    """Eq. 1's energy made positive definite: the anchor and the pinning of outside pixels.
+
+    Every term annihilates constants, so a tiny anchor ``alpha * sum_i (s_i - t)^2`` over the
+    region (``alpha = anchor * mean(diag(Psi))``, ``t`` the mean of ``log p``) fixes the free
+    constant; pixels outside ``mask`` are pinned to ``s = 0`` (see the module notes).
+
+    Args:
+        total: ``build_shading_system(...).total``.
+        image: ``(B, 3, H, W)`` linear RGB.
+        mask: ``(B, 1, H, W)`` bool or ``None``.
+        anchor: ``options.anchor``.
+        dark_eps: ``options.dark_eps``.
+
+    Returns:
+        :class:`AnchoredSystem`.
+    """
+    b, _, h, w = image.shape
+    dt, dev = image.dtype, image.device
+    m = torch.ones(b, 1, h, w, dtype=dt, device=dev) if mask is None else mask.to(dt)
+    area = m.flatten(1).sum(1).view(b, 1, 1, 1)
+    target = (intensity(image, dark_eps).log() * m).flatten(1).sum(1).view(b, 1, 1, 1) / area
+    diag = total.diagonal() * m
+    alpha = anchor * diag.flatten(1).sum(1).view(b, 1, 1, 1) / area
+    alpha = torch.where(alpha > 0, alpha, torch.full_like(alpha, anchor))
+    rhs = (total.rhs() + alpha * target) * m
+    extra = alpha * m + (1 - m)
+
+    def matvec(x: torch.Tensor) -> torch.Tensor:
+        if mask is None:
+            return total.matvec(x).addcmul_(extra, x)
+        return total.matvec(m * x).mul_(m).addcmul_(extra, x)
+
+    return AnchoredSystem(total, matvec, rhs, target, m, area, extra, 1 / (diag + extra))
 
 
 def _multigrid(kind: str, system: SumQuadratic, extra: torch.Tensor, mask: torch.Tensor | None):
@@ -373,24 +448,10 @@ def solve_shading(
     image, mask = problem.image.contiguous(), problem.mask
     b, _, h, w = image.shape
     dev, dt = image.device, image.dtype
-    m = torch.ones(b, 1, h, w, dtype=dt, device=dev) if mask is None else mask.to(dt)
-    area = m.flatten(1).sum(1).view(b, 1, 1, 1)
-    logp = intensity(image, o.dark_eps).log()
-    target = (logp * m).flatten(1).sum(1).view(b, 1, 1, 1) / area
-    diag = system.diagonal() * m
-    alpha = o.anchor * diag.flatten(1).sum(1).view(b, 1, 1, 1) / area
-    alpha = torch.where(alpha > 0, alpha, torch.full_like(alpha, o.anchor))
-    rhs = (system.rhs() + alpha * target) * m
-    pinned = 1 - m
-
-    extra = alpha * m + pinned
-
-    def matvec(x: torch.Tensor) -> torch.Tensor:
-        if mask is None:
-            return system.matvec(x).addcmul_(extra, x)
-        return system.matvec(m * x).mul_(m).addcmul_(extra, x)
-
-    precond = 1 / (diag + alpha * m + pinned)
+    anchored = anchored_system(system, image, mask, o.anchor, o.dark_eps)
+    matvec, rhs, extra = anchored.matvec, anchored.rhs, anchored.extra
+    m, area, target = anchored.inside, anchored.area, anchored.target
+    precond = anchored.jacobi
     max_iter = o.max_iter
     fresh = False
     if o.preconditioner != "jacobi":
