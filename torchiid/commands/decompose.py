@@ -268,8 +268,11 @@ def run_decompose(args: argparse.Namespace) -> int:
                 if capped:
                     worst = max(capped, key=lambda r: r.residual / r.tolerance)
                     say(
-                        f"torchiid: note: {path}: {len(capped)} of {len(result.solves)} solves "
-                        f"stopped at their iteration caps (worst: {worst}); see {stem}-info.json"
+                        f"torchiid: note: {path}: {len(capped)} of {len(result.solves)} solver "
+                        "runs stopped at their iteration caps before their tolerance (the "
+                        "default preset caps them on purpose; largest residual "
+                        f"{worst.residual:.1g} against {worst.tolerance:g}); details in "
+                        f"{stem}-info.json"
                     )
                 done = f"{path} -> {out}/{stem}-* ({time.perf_counter() - t0:.1f} s)"
                 if show:
