@@ -33,6 +33,7 @@ from torchiid.features.semantic import SemanticFeatures, semantic_features
 from torchiid.params import Parameters
 from torchiid.priors.shading_terms import pixel_confidence
 from torchiid.resample import GuidedUpsampler, downsample, row_bands, working_size
+from torchiid.stages.config import TemporalPrior
 from torchiid.stages.reflectance import ReflectanceCache, solve_reflectance
 from torchiid.stages.shading import ShadingSystemCache, solve_shading
 
@@ -128,6 +129,9 @@ class Decomposition:
             share of the full image).
         working_size: ``(h, w)`` the resolution the method ran at.
         solves: one :class:`SolveReport` per stage and alternation.
+        features: the Stage 0 features used (at the working resolution) when
+            ``decompose(..., return_features=True)``, else ``None``: pass them back as
+            ``features=`` to skip Stage 0 (video reuses them across similar frames).
     """
 
     reflectance: torch.Tensor
@@ -142,6 +146,7 @@ class Decomposition:
     albedo_excess: torch.Tensor | None = None
     working_size: tuple[int, int] | None = None
     solves: tuple[SolveReport, ...] = ()
+    features: SemanticFeatures | None = None
 
     @property
     def converged(self) -> bool:
@@ -222,6 +227,8 @@ def _warm_start(
     r0 = r0[None] if r0.dim() == 3 else r0
     s0 = s0[None] if s0.dim() == 3 else s0
     b, _, big_h, big_w = image.shape
+    if r0.dim() == 4 and tuple(r0.shape[-2:]) == tuple(size) and tuple(size) != (big_h, big_w):
+        big_h, big_w = size  # given at the working resolution
     if tuple(r0.shape) != (b, 3, big_h, big_w):
         raise ShapeError(f"init reflectance must be {(b, 3, big_h, big_w)}, got {tuple(r0.shape)}")
     if (
@@ -240,6 +247,44 @@ def _warm_start(
     return s0.contiguous(), r0.contiguous()
 
 
+def _temporal_prior(
+    prior: TemporalPrior,
+    image: torch.Tensor,
+    size: tuple[int, int],
+    mask: torch.Tensor | None,
+) -> TemporalPrior:
+    """The temporal prior of ``decompose(..., temporal=)`` at the working resolution."""
+    if not isinstance(prior, TemporalPrior):
+        raise ShapeError(
+            f"temporal must be a torchiid.stages.TemporalPrior, got {type(prior).__name__}"
+        )
+    b, _, big_h, big_w = image.shape
+    target = torch.as_tensor(prior.target).to(device=image.device, dtype=image.dtype)
+    conf = torch.as_tensor(prior.confidence).to(device=image.device, dtype=image.dtype)
+    target = target[None] if target.dim() == 3 else target
+    conf = conf[None] if conf.dim() == 3 else conf
+    if tuple(target.shape[-2:]) == tuple(size) and tuple(size) != (big_h, big_w):
+        big_h, big_w = size  # given at the working resolution
+    if tuple(target.shape) != (b, 3, big_h, big_w):
+        raise ShapeError(
+            f"temporal target must be {(b, 3, big_h, big_w)}, got {tuple(target.shape)}"
+        )
+    if tuple(conf.shape) != (b, 1, big_h, big_w):
+        raise ShapeError(
+            f"temporal confidence must be {(b, 1, big_h, big_w)}, got {tuple(conf.shape)}"
+        )
+    if not (torch.isfinite(target).all() and torch.isfinite(conf).all()):
+        raise ShapeError("temporal target or confidence contains NaN or infinite values")
+    conf = conf.clamp(0, 1)
+    # confidence-weighted averages: untrusted target pixels do not leak into trusted ones
+    weighted = downsample(target.clamp_min(0) * conf, size)
+    conf = downsample(conf, size)
+    target = weighted / conf.clamp_min(1e-6)
+    if mask is not None:
+        conf = conf * mask
+    return prior.replace(target=target.contiguous(), confidence=conf.contiguous())
+
+
 @torch.no_grad()
 def decompose(
     image: torch.Tensor,
@@ -251,6 +296,8 @@ def decompose(
     return_stage1: bool = True,
     progress: Callable[[str, int, int], None] | None = None,
     init: tuple[torch.Tensor, torch.Tensor] | None = None,
+    temporal: TemporalPrior | None = None,
+    return_features: bool = False,
 ) -> Decomposition:
     """Decompose linear RGB images into reflectance and shading (the paper's full method).
 
@@ -270,15 +317,25 @@ def decompose(
         progress: called as ``progress(stage, k, total)`` with stage ``"features"`` and then
             ``"iteration"`` after each alternation ``k = 1..total``.
         init: a warm start ``(R0, S0)`` (e.g. a network's prediction) at the input's
-            resolution: reflectance ``(B, 3, H, W)`` and shading ``(B, 1, H, W)`` (or
-            ``(B, 3, H, W)``, averaged to gray), positive. The first alternation's shading
-            PCG starts from ``log S0`` (instead of the coarse-to-fine cascade; its iterations
-            are then capped by ``params.warm_cg_max_iter`` like later alternations) and
-            its Split-Bregman from ``z = c·R0`` (instead of ``ρ``), ``c`` the least-squares
-            fit of ``R0`` to Stage 1's ``ρ`` (the scale of ``R0 · S0`` does not matter). Only
-            the starting points change, not the energies (the matting base of the first
-            ``S_p`` stays the smoothed image): when the solves converge the result is the
-            cold start's.
+            resolution or at the working resolution: reflectance ``(B, 3, H, W)`` and
+            shading ``(B, 1, H, W)`` (or ``(B, 3, H, W)``, averaged to gray), positive. The
+            first alternation's shading PCG starts from ``log S0`` (instead of the
+            coarse-to-fine cascade; its iterations are then capped by
+            ``params.warm_cg_max_iter`` like later alternations) and its Split-Bregman from
+            ``z = c·R0`` (instead of ``ρ``), ``c`` the least-squares fit of ``R0`` to Stage
+            1's ``ρ`` (the scale of ``R0 · S0`` does not matter). Only the starting points
+            change, not the energies (the matting base of the first ``S_p`` stays the
+            smoothed image): when the solves converge the result is the cold start's.
+        temporal: a :class:`~torchiid.stages.config.TemporalPrior` at the input's
+            resolution or at the working resolution (video: the previous frame's reflectance
+            warped onto this frame, and where that warp is trusted): every alternation's
+            Stage 2 adds a term pulling the reflectance toward it (an L2 anchor or an L1
+            term, relative to the data term; the target's scale does not matter). Brought to
+            the working resolution by area averaging (the target weighted by the
+            confidence); the confidence is 0 outside the mask. ``None`` (default): Eq. 12 as
+            in the paper. :mod:`torchiid.video` builds it from optical flow.
+        return_features: keep the Stage 0 features in ``Decomposition.features`` (to pass
+            them as ``features=`` for another image of the same scene).
 
     Returns:
         :class:`Decomposition` at the input's resolution and dtype. float16 and bfloat16
@@ -338,6 +395,9 @@ def decompose(
     s_init = z_init = None
     if init is not None:
         s_init, z_init = _warm_start(init, image, (h, w), msk, params)
+    temporal_low = None
+    if temporal is not None:
+        temporal_low = _temporal_prior(temporal, image, (h, w), msk)
 
     shading_w, refl_w = params.shading_weights(), params.reflectance_weights()
     shading_opt, refl_opt = params.shading_options(), params.reflectance_options()
@@ -373,6 +433,8 @@ def decompose(
         t0 = time.perf_counter()
         if refl_w.active:
             problem = features.reflectance_problem(rho, img, mask=msk)
+            if temporal_low is not None:
+                problem = problem.replace(temporal=temporal_low)
             z0 = r_prev
             if z0 is None and z_init is not None:
                 # the warm start on the scale of this rho (R0 · S0 is ambiguous up to a factor)
@@ -435,6 +497,7 @@ def decompose(
         albedo_excess=final.albedo_excess,
         working_size=(h, w),
         solves=tuple(solves),
+        features=features if return_features else None,
     )
 
 

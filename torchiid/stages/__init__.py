@@ -7,6 +7,7 @@ from torchiid.stages.config import (
     ShadingOptions,
     ShadingProblem,
     ShadingWeights,
+    TemporalPrior,
 )
 from torchiid.stages.reflectance import (
     ReflectanceCache,
@@ -33,6 +34,7 @@ __all__ = [
     "ShadingOptions",
     "ShadingProblem",
     "ShadingWeights",
+    "TemporalPrior",
     "ReflectanceCache",
     "ReflectanceResult",
     "ReflectanceTerms",

@@ -30,7 +30,12 @@ __all__ = [
     "ReflectanceProblem",
     "ReflectanceWeights",
     "ReflectanceOptions",
+    "TemporalPrior",
+    "TEMPORAL_NORMS",
 ]
+
+#: the two forms of the temporal reflectance term (:class:`TemporalPrior`)
+TEMPORAL_NORMS = ("l2", "l1")
 
 
 def _check_tau(tau: float) -> None:
@@ -113,6 +118,8 @@ class ShadingOptions:
     Attributes:
         t_c: chromaticity deviation of ``S_l`` (paper 1e-4, nearly binary).
         t_b: dark-pixel deviation of ``S_l`` (paper 0.05).
+        t_i: intensity deviation of ``S_l`` (0: off, the paper's weights; see
+            :func:`~torchiid.priors.shading_terms.retinex_weights`).
         t_m: deviation of ``S_m`` (paper 0.05).
         matting_eps: Levin's ε of ``S_p`` (1e-5).
         dark_eps: floor of intensities before logs.
@@ -142,6 +149,7 @@ class ShadingOptions:
 
     t_c: float = 1e-4
     t_b: float = 0.05
+    t_i: float = 0.0
     t_m: float = 0.05
     matting_eps: float = 1e-5
     dark_eps: float = 1e-4
@@ -185,6 +193,52 @@ class ShadingOptions:
 
 
 @dataclass(frozen=True, eq=False)
+class TemporalPrior:
+    """A reflectance target from another frame of a video: Stage 2 pulls ``z`` toward it.
+
+    Stage 2's energy (Eq. 12) gains a term on the pixels where the target is trusted:
+
+    * ``norm="l2"`` (an anchor): ``s·γ_a·weight · Σ_i c_i ‖z_i − κ T_i‖²``;
+    * ``norm="l1"`` (inside Split-Bregman, like ``A``, ``B``, ``C``):
+      ``s·γ_a·weight · Σ_i c_i ‖z_i − κ T_i‖₁``,
+
+    with ``c`` the confidence, ``s·γ_a`` the data term's weight (``value_scale · γ_a``, so the
+    term follows the §3.4 schedule of the data term) and ``κ`` a global factor per image fitted
+    to the current ``ρ`` (the median of ``Σ_c ρ / Σ_c T`` over the trusted pixels): the
+    target's scale does not matter, as ``ρ``'s is arbitrary. For the anchor, ``weight`` is
+    the ratio of the anchor to the data term (``weight = 4``: without the sparsity terms
+    ``z = (ρ + 4 κT) / 5``); for the L1 form, ``z`` snaps to ``κ T`` wherever
+    ``|ρ − κT| ≤ weight / 2`` (per channel, without the sparsity terms) and follows ``ρ``
+    beyond, so a wrong target (a flow error that passed the occlusion check, a new object)
+    pulls with bounded force.
+
+    Attributes:
+        target: ``(B, 3, H, W)`` linear reflectance of the other frame, warped onto this one.
+        confidence: ``(B, 1, H, W)`` in ``[0, 1]``: 1 where the target is trusted (the
+            flow's forward–backward check passed), 0 where it is not (occluded, outside).
+        weight: the term's weight relative to the data term, ``>= 0`` (0: off).
+        norm: ``"l2"`` or ``"l1"``.
+    """
+
+    target: torch.Tensor
+    confidence: torch.Tensor
+    weight: float = 4.0
+    norm: str = "l2"
+
+    def __post_init__(self) -> None:
+        if self.norm not in TEMPORAL_NORMS:
+            raise ParameterError(
+                f"temporal norm must be one of {', '.join(TEMPORAL_NORMS)}, got {self.norm!r}"
+            )
+        if not self.weight >= 0:
+            raise ParameterError(f"temporal weight must be >= 0, got {self.weight}")
+
+    def replace(self, **changes: object) -> TemporalPrior:
+        """A copy with some fields changed."""
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True, eq=False)
 class ReflectanceProblem:
     """The tensors of one reflectance solve (Eq. 12), linear RGB.
 
@@ -194,6 +248,8 @@ class ReflectanceProblem:
         gpca: ``(B, d, H, W)`` PCA-reduced proposal features ``g̊`` for ``B``.
         segments: ``(B, H, W)`` long segment labels giving the representatives of ``C``.
         mask: ``(B, 1, H, W)`` bool region to decompose, or ``None``.
+        temporal: a :class:`TemporalPrior` (video: the previous frame's reflectance warped
+            onto this one), or ``None`` (a still image: Eq. 12 unchanged).
 
     A prior whose tensors are ``None`` is off whatever its weight.
     """
@@ -203,6 +259,7 @@ class ReflectanceProblem:
     gpca: torch.Tensor | None = None
     segments: torch.Tensor | None = None
     mask: torch.Tensor | None = None
+    temporal: TemporalPrior | None = None
 
     def replace(self, **changes: object) -> ReflectanceProblem:
         """A copy with some tensors changed."""

@@ -18,6 +18,13 @@ non-negative weights, anisotropic L1). With ``merge_stencil_terms=True`` (defaul
 works on this single term, which halves time and memory; the minimiser is unchanged (the
 Bregman splitting, hence the iterates after few iterations, differ slightly).
 
+Video. A :class:`~torchiid.stages.config.TemporalPrior` in the problem adds a term ``"T"``
+pulling ``z`` toward another frame's reflectance warped onto this one (:func:`temporal_term`):
+an L1 term ``γ_T ‖c ⊙ (z − κT)‖₁`` solved by Split-Bregman like the others
+(:class:`TemporalL1Term`), or a quadratic anchor ``γ_T ‖√c ⊙ (z − κT)‖²`` that enters the
+``z`` step's normal equations exactly (:class:`TemporalAnchorTerm`). Without it (still
+images) nothing changes.
+
 Scales. The paper's values (γ_l = γ_m = 20, γ_g = 2, θ = 40, §4) are reused from Bi et al.'s
 Matlab code, which works on 8-bit values ``0..255``. ``γ_a`` is not given; 1 is used. We evaluate
 Eq. 12 on ``s·z`` (``s = value_scale = 255``) and divide by ``s``, i.e. on our ``[0, 1]`` linear
@@ -64,7 +71,12 @@ from torchiid.priors.reflectance_terms import (
 from torchiid.priors.representatives import global_pair_term, representative_pixels
 from torchiid.priors.stencil import Stencil
 from torchiid.solvers.split_bregman import SplitBregmanResult, split_bregman
-from torchiid.stages.config import ReflectanceOptions, ReflectanceProblem, ReflectanceWeights
+from torchiid.stages.config import (
+    ReflectanceOptions,
+    ReflectanceProblem,
+    ReflectanceWeights,
+    TemporalPrior,
+)
 
 __all__ = [
     "ReflectanceCache",
@@ -74,6 +86,9 @@ __all__ = [
     "build_reflectance_terms",
     "solve_reflectance",
     "shading_from_ratio",
+    "TemporalL1Term",
+    "TemporalAnchorTerm",
+    "temporal_term",
 ]
 
 logger = logging.getLogger(__name__)
@@ -168,7 +183,8 @@ class ReflectanceTerms:
 
     Attributes:
         terms: name -> ``(gamma, term)`` of every active L1 term, in solver order: ``"A+B"``
-            (the merged local and mid-level term) or ``"A"`` and ``"B"``, then ``"C"``.
+            (the merged local and mid-level term) or ``"A"`` and ``"B"``, then ``"C"``, then
+            the temporal term ``"T"`` when the problem has a ``temporal`` prior.
         num_representatives: ``(B,)`` size of ``Q`` (0 when ``C`` is off).
         timings: seconds for the colour features, ``A``'s, ``B``'s and ``C``'s weights.
     """
@@ -193,6 +209,11 @@ def _check_problem(problem: ReflectanceProblem) -> None:
         check_finite(problem.gpca, "gpca")
     if problem.segments is not None:
         check_shape(problem.segments, (b, h, w), "segments")
+    if problem.temporal is not None:
+        check_shape(problem.temporal.target, (b, 3, h, w), "temporal target")
+        check_finite(problem.temporal.target, "temporal target")
+        check_shape(problem.temporal.confidence, (b, 1, h, w), "temporal confidence")
+        check_finite(problem.temporal.confidence, "temporal confidence")
 
 
 def build_reflectance_terms(
@@ -266,6 +287,10 @@ def build_reflectance_terms(
         reps = representative_pixels(rbar, problem.segments, mask)
         terms["C"] = (float(weights.gamma_g), global_pair_term(rbar, reps, o.t))
         nrep = reps.counts
+    if problem.temporal is not None:
+        term = temporal_term(problem.temporal, rho, weights, options, mask)
+        if term is not None:
+            terms["T"] = term
     t4 = time.perf_counter()
     return ReflectanceTerms(terms, nrep, (t1 - t0, t3 - t2, t2 - t1, t4 - t3))
 
@@ -327,3 +352,127 @@ def solve_reflectance(
     t_feat, t_local, t_mid, t_global = built.timings
     timings = ReflectanceTimings(t_feat, t_local, t_mid, t_global, t5 - t4)
     return ReflectanceResult(refl, shading, sol, built.num_representatives, timings)
+
+
+class TemporalL1Term:
+    """``‖diag(c) (z − T)‖₁``: an L1 pull toward a target, for Split-Bregman.
+
+    An affine operator ``D z = c ⊙ (z − T)``: the Bregman step shrinks ``u = D z + b`` like
+    the difference terms do, and the ``z`` step's right-hand side gets ``c ⊙ (d − b) + c² T``
+    (from ``θ/2 ‖d − c(z − T) − b‖²``), its normal matrix ``diag(c²)``.
+
+    Args:
+        target: ``(B, C, H, W)`` the target ``T``.
+        confidence: ``(B, 1, H, W)`` per-pixel weights ``c >= 0``.
+    """
+
+    def __init__(self, target: torch.Tensor, confidence: torch.Tensor) -> None:
+        self.target = target.contiguous()
+        self.confidence = confidence.contiguous()
+        self._c2 = self.confidence.square()
+        self._c2t = self._c2 * self.target
+
+    def apply(self, z: torch.Tensor) -> torch.Tensor:
+        """``c ⊙ (z − T)``, shape of ``z``."""
+        return (z - self.target).mul_(self.confidence)
+
+    def l1(self, z: torch.Tensor) -> torch.Tensor:
+        """``‖c ⊙ (z − T)‖₁`` per image ``(B,)``."""
+        return self.apply(z).abs_().flatten(1).sum(dim=1)
+
+    def normal_matvec(self, z: torch.Tensor) -> torch.Tensor:
+        """``c² ⊙ z`` (a fresh tensor)."""
+        return self._c2 * z
+
+    def normal_diagonal(self) -> torch.Tensor:
+        """``c²``, ``(B, 1, H, W)``."""
+        return self._c2
+
+    def bregman_step(
+        self, z: torch.Tensor, b: torch.Tensor | None, lam: float, with_l1: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """One Bregman update at ``z``: ``(b, rhs, ‖D z‖₁)`` (see the class notes)."""
+        u = self.apply(z)
+        l1 = u.abs().flatten(1).sum(dim=1) if with_l1 else None
+        if b is not None:
+            u += b
+        b = u.clamp(-lam, lam) if b is None else b.copy_(u.clamp(-lam, lam))
+        rhs = u.sub_(b, alpha=2.0).mul_(self.confidence).add_(self._c2t)
+        return b, rhs, l1
+
+
+class TemporalAnchorTerm:
+    """``Σ c ‖z − T‖²``: a quadratic pull toward a target, in Split-Bregman's term interface.
+
+    Quadratic, so it needs no splitting: it adds ``2γ c`` to the ``z`` step's normal matrix
+    and ``2γ c T`` to its right-hand side, exactly. The solver multiplies every term's normal
+    product and right-hand side by its penalty ``θ``, so this term carries
+    ``coefficient = 2γ / θ``; its "L1 norm" (used for the objective as ``γ · l1``) is the
+    quadratic energy ``Σ c ‖z − T‖²``.
+
+    Args:
+        target: ``(B, C, H, W)`` the target ``T``.
+        confidence: ``(B, 1, H, W)`` per-pixel weights ``c >= 0``.
+        coefficient: ``2γ / θ`` of the solve it enters.
+    """
+
+    def __init__(self, target: torch.Tensor, confidence: torch.Tensor, coefficient: float):
+        self.target = target.contiguous()
+        self.confidence = confidence.contiguous()
+        self._w = self.confidence * coefficient
+        self._rhs = self._w * self.target
+
+    def l1(self, z: torch.Tensor) -> torch.Tensor:
+        """The energy ``Σ c ‖z − T‖²`` per image ``(B,)`` (see the class notes)."""
+        return (z - self.target).square_().mul_(self.confidence).flatten(1).sum(dim=1)
+
+    def normal_matvec(self, z: torch.Tensor) -> torch.Tensor:
+        """``(2γ/θ) c ⊙ z`` (a fresh tensor)."""
+        return self._w * z
+
+    def normal_diagonal(self) -> torch.Tensor:
+        """``(2γ/θ) c``, ``(B, 1, H, W)``."""
+        return self._w
+
+    def bregman_step(
+        self, z: torch.Tensor, b: torch.Tensor | None, lam: float, with_l1: bool = True
+    ) -> tuple[None, torch.Tensor, torch.Tensor | None]:
+        """No splitting: the state stays empty and the right-hand side is ``(2γ/θ) c T``."""
+        return None, self._rhs, self.l1(z) if with_l1 else None
+
+
+def temporal_term(
+    prior: TemporalPrior,
+    rho: torch.Tensor,
+    weights: ReflectanceWeights,
+    options: ReflectanceOptions,
+    mask: torch.Tensor | None = None,
+) -> tuple[float, TemporalL1Term | TemporalAnchorTerm] | None:
+    """The temporal term ``"T"`` of a :class:`~torchiid.stages.config.TemporalPrior`.
+
+    The target is brought to the scale of ``ρ`` by ``κ``, the median over the trusted pixels
+    (confidence > 0.5, inside the mask, ``Σ_c T > 1e-3``) of ``Σ_c ρ / Σ_c T``, per image;
+    its weight is ``γ_T = weight · γ_a · value_scale`` (the data term's weight, so the term
+    keeps its ratio to the data term along the §3.4 schedule).
+
+    Returns:
+        ``(γ_T, term)``, or ``None`` when the weight is 0 or no pixel is trusted.
+    """
+    gamma = prior.weight * weights.gamma_a * options.value_scale
+    conf = prior.confidence.to(rho.dtype).clamp(0, 1)
+    if mask is not None:
+        conf = conf * mask
+    if not gamma > 0 or not bool((conf > 0).any()):
+        return None
+    target = prior.target.to(rho.dtype).clamp_min(0)
+    t_sum, r_sum = target.sum(1, keepdim=True), rho.sum(1, keepdim=True)
+    kappa = torch.ones(rho.shape[0], dtype=rho.dtype, device=rho.device)
+    for i in range(rho.shape[0]):
+        ok = (conf[i] > 0.5) & (t_sum[i] > 1e-3)
+        if bool(ok.any()):
+            kappa[i] = (r_sum[i][ok] / t_sum[i][ok]).median()
+    target = target * kappa.view(-1, 1, 1, 1)
+    if prior.norm == "l1":
+        return float(gamma), TemporalL1Term(target, conf)
+    coefficient = 2.0 * gamma / (options.theta * options.value_scale)
+    return float(gamma), TemporalAnchorTerm(target, conf, coefficient)
