@@ -55,8 +55,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="split photos into reflectance and shading",
         description="Split photos into reflectance and shading.",
     )
-    d.add_argument("inputs", nargs="+", type=Path, help="image files and/or directories")
+    d.add_argument(
+        "inputs",
+        nargs="*",
+        help="image files, directories and glob patterns (quote them: 'photos/**/*.jpg')",
+    )
     d.add_argument("-o", "--output", type=Path, required=True, help="output directory")
+    d.add_argument("-r", "--recursive", action="store_true", help="also take images in subfolders")
+    d.add_argument(
+        "--list",
+        action="append",
+        type=Path,
+        metavar="FILE",
+        help="a list of inputs: one path per line, or a CSV file with a 'path' and an optional "
+        "'mask' column; relative paths are relative to the list's folder (repeatable)",
+    )
     d.add_argument(
         "--method",
         default="semantic",
@@ -90,6 +103,43 @@ def build_parser() -> argparse.ArgumentParser:
         help="write every iteration's sigma, rho, R, S (sRGB PNGs)",
     )
     d.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    d.add_argument(
+        "--retry-failed",
+        action="store_true",
+        help="also run the inputs the manifest records as failed (skipped otherwise)",
+    )
+    d.add_argument(
+        "--redo",
+        action="store_true",
+        help="ignore the manifest: run every input again (with --overwrite to replace files)",
+    )
+    d.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="run N worker processes on this machine, each with its share of the cores "
+        "(default: one image at a time in this process)",
+    )
+    d.add_argument(
+        "--threads",
+        type=int,
+        metavar="T",
+        help="torch threads per worker (default with --workers: cores / N)",
+    )
+    d.add_argument(
+        "--dask-scheduler",
+        metavar="ADDRESS",
+        help="send the images to the dask.distributed cluster of this scheduler "
+        "(e.g. tcp://10.0.0.1:8786); needs pip install 'torchiid[dask]'",
+    )
+    d.add_argument(
+        "--retries",
+        type=int,
+        default=1,
+        metavar="N",
+        help="times an image is tried again when its worker dies (--workers) or its task "
+        "raises (Dask retries=); default 1",
+    )
     d.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_common_image_options(d)
 

@@ -1,0 +1,56 @@
+"""Collections: many photos, resumable, on many processes or a Dask cluster.
+
+:func:`run_collection` decomposes a list of inputs (:func:`torchiid.io.inputs.list_inputs`)
+into an output folder with a manifest (:mod:`.manifest`) that makes reruns skip what is done,
+in this process, in ``workers`` processes (:mod:`.pool`) or on a Dask cluster
+(:mod:`.dask_runner`); :func:`process_image` is what each of them does for one image.
+"""
+
+from torchiid.collection.job import (
+    RETINEX_DEFAULTS,
+    ImageJob,
+    ImageResult,
+    InterruptedAfterCommit,
+    RunSettings,
+    error_message,
+    file_sha256,
+    output_names,
+    params_hash,
+    process_image,
+    worker_state,
+)
+from torchiid.collection.lock import FolderBusyError, OutputLock
+from torchiid.collection.manifest import MANIFEST_NAME, Manifest, ManifestWriter, Plan, plan
+from torchiid.collection.runner import (
+    Progress,
+    Reporter,
+    RunInterrupted,
+    RunSummary,
+    run_collection,
+)
+
+__all__ = [
+    "MANIFEST_NAME",
+    "RETINEX_DEFAULTS",
+    "FolderBusyError",
+    "ImageJob",
+    "ImageResult",
+    "InterruptedAfterCommit",
+    "Manifest",
+    "ManifestWriter",
+    "OutputLock",
+    "Plan",
+    "Progress",
+    "Reporter",
+    "RunInterrupted",
+    "RunSettings",
+    "RunSummary",
+    "error_message",
+    "file_sha256",
+    "output_names",
+    "params_hash",
+    "plan",
+    "process_image",
+    "run_collection",
+    "worker_state",
+]

@@ -1,0 +1,154 @@
+"""``--dask-scheduler ADDRESS``: the images as tasks of an existing ``dask.distributed`` cluster.
+
+Each image is one task (:func:`dask_task`) submitted with ``retries=``; the worker that runs it
+loads the model once (:func:`~.job.worker_state`, cached in the worker process), decomposes
+the image and puts its files in place itself, through the same output sets as a local run
+(so the output folder must be on a file system that every worker sees under the same path, as
+must the inputs). The client appends the manifest as the tasks end (``as_completed``).
+
+Failures: a bad input is a result, not an error (no retry: it would fail again). A task that
+raises something unexpected (not a :class:`TorchiidError`: a ``MemoryError``, a bug) is tried
+again up to ``retries`` times, maybe on another worker. A task whose worker dies is re-run by
+the scheduler on another worker; one that has killed ``distributed.scheduler.allowed-failures``
+workers (default 3) ends as ``KilledWorker`` and is recorded as failed. Temporary files of
+killed workers are removed at the end of the run.
+
+``distributed`` is an optional dependency: ``pip install 'torchiid[dask]'``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import secrets
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+
+from torchiid.collection.job import (
+    ImageJob,
+    ImageResult,
+    RunSettings,
+    error_message,
+    params_hash,
+    process_image,
+)
+from torchiid.collection.pool import remove_temporary_sets
+from torchiid.core.exceptions import TorchiidError
+
+__all__ = ["ImageTaskError", "dask_task", "run_on_dask"]
+
+log = logging.getLogger("torchiid")
+
+
+class ImageTaskError(RuntimeError):
+    """An image's task failed for a reason that may not recur (Dask retries it)."""
+
+
+def dask_task(
+    job: ImageJob, settings: RunSettings, phash: str, decompose_fn: Callable | None = None
+) -> ImageResult:
+    """One image on a Dask worker (see the module notes); raises to be retried."""
+    kwargs = {} if decompose_fn is None else {"decompose_fn": decompose_fn}
+    result = process_image(job, settings, phash=phash, **kwargs)
+    if result.retryable:
+        raise ImageTaskError(result.message)
+    return result
+
+
+def _client(address: str, timeout: float):
+    try:
+        from distributed import Client
+    except ImportError:
+        raise TorchiidError(
+            "--dask-scheduler needs the 'distributed' package: pip install 'torchiid[dask]'"
+        ) from None
+    try:
+        return Client(address, timeout=timeout, set_as_default=False)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise TorchiidError(
+            f"cannot reach the Dask scheduler at {address} ({' '.join(str(exc).split())})"
+        ) from None
+
+
+def run_on_dask(
+    jobs: Sequence[ImageJob],
+    settings: RunSettings,
+    address: str,
+    *,
+    retries: int = 1,
+    decompose_fn: Callable | None = None,
+    connect_timeout: float = 20.0,
+    in_flight: list | None = None,
+) -> Iterator[ImageResult]:
+    """Run the jobs on the cluster of ``address``; yields each result as its task ends.
+
+    Args:
+        jobs: the images.
+        settings: the run's settings (``settings.out`` an absolute path the workers see).
+        address: the scheduler, e.g. ``tcp://10.0.0.1:8786``.
+        retries: Dask ``retries=`` of each task.
+        decompose_fn: a picklable decomposition function (default
+            :func:`torchiid.model.decompose`).
+        connect_timeout: seconds to wait for the scheduler.
+        in_flight: filled with the jobs not finished yet (for the interrupt message).
+
+    Raises:
+        TorchiidError: ``distributed`` is not installed or the scheduler cannot be reached.
+    """
+    from distributed import as_completed
+    from distributed.scheduler import KilledWorker
+
+    client = _client(address, connect_timeout)
+    phash = params_hash(settings)
+    token = secrets.token_hex(4)
+    futures = {}
+    try:
+        for job in jobs:
+            future = client.submit(
+                dask_task,
+                job,
+                settings,
+                phash,
+                decompose_fn,
+                key=f"torchiid-{token}-{job.index}",
+                retries=retries,
+                pure=False,
+            )
+            futures[future.key] = (future, job)
+        if in_flight is not None:
+            in_flight[:] = [job for _, job in futures.values()]
+        for future in as_completed([f for f, _ in futures.values()]):
+            _, job = futures.pop(future.key)
+            if in_flight is not None:
+                in_flight[:] = [j for _, j in futures.values()]
+            try:
+                result = future.result()
+            except KilledWorker as exc:
+                result = _failed(job, f"workers died while processing it ({exc})", "worker")
+            except ImageTaskError as exc:
+                result = _failed(job, str(exc), "error", retries + 1)
+            except Exception as exc:  # noqa: BLE001 - one image's task
+                result = _failed(job, error_message(job.path, exc), "error", retries + 1)
+            yield result
+        folders = {job.folder for job in jobs}
+        for folder in folders:
+            remove_temporary_sets(Path(settings.out, folder) if folder else Path(settings.out))
+    finally:
+        if futures:
+            with contextlib.suppress(Exception):
+                client.cancel([f for f, _ in futures.values()])
+        with contextlib.suppress(Exception):
+            client.close()
+
+
+def _failed(job: ImageJob, message: str, failure: str, attempts: int = 1) -> ImageResult:
+    text = message if job.path in message else f"{job.path}: {message}"
+    return ImageResult(
+        job.index,
+        job.key,
+        job.path,
+        "failed",
+        " ".join(text.split()),
+        attempts=attempts,
+        failure=failure,
+    )

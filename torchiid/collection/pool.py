@@ -1,0 +1,331 @@
+"""``--workers N``: N worker processes on this machine, each with its share of the cores.
+
+The workers are started with the ``spawn`` method (``fork`` after torch has started its thread
+pools is unsafe), with ``OMP_NUM_THREADS``, ``MKL_NUM_THREADS`` and ``OPENBLAS_NUM_THREADS``
+set in their environment before anything is imported, and ``torch.set_num_threads`` called
+before the first image. Each worker loads the model once (:func:`~.job.worker_state`) and then
+takes one image at a time over its own pipe, so the parent always knows which image each
+worker is on. When a worker dies (killed, out of memory, a crash in native code), only that
+image is lost: its temporary files are removed, it is given to a new worker again (``retries``
+times, default once) and the other workers go on undisturbed.
+
+An interrupt (Ctrl-C reaches every process of the terminal's group; SIGTERM to the parent is
+passed on to the workers) stops each worker in its image: the image's temporary files are
+removed (an image whose files were being put in place completes and is reported), and the
+parent records the results that arrive, then returns.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing
+import os
+import re
+import shutil
+import signal
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from multiprocessing.connection import wait
+from pathlib import Path
+from typing import Any
+
+from torchiid.collection.job import (
+    ImageJob,
+    ImageResult,
+    InterruptedAfterCommit,
+    RunSettings,
+    process_image,
+    with_attempt,
+    worker_state,
+)
+from torchiid.core.exceptions import TorchiidError
+
+__all__ = ["WorkerPool", "available_cores", "remove_temporary_sets"]
+
+log = logging.getLogger("torchiid")
+
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+#: seconds the workers get to stop after an interrupt before they are killed
+STOP_GRACE = 20.0
+
+
+def available_cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def remove_temporary_sets(folder: Path, stem: str | None = None) -> int:
+    """Remove the temporary folders of output sets left in ``folder`` by dead processes.
+
+    Only folders named like :class:`~torchiid.io.layers.OutputSet`'s
+    (``.torchiid-<stem>-<8 random characters>``), of ``stem`` when given. Call it only when no
+    live process can be writing that set. Returns how many were removed.
+    """
+    label = re.escape(stem) if stem is not None else ".+"
+    pattern = re.compile(rf"\.torchiid-{label}-[a-z0-9_]{{8}}")
+    removed = 0
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return 0
+    for entry in entries:
+        if pattern.fullmatch(entry.name) and entry.is_dir(follow_symlinks=False):
+            shutil.rmtree(entry.path, ignore_errors=True)
+            removed += 1
+    return removed
+
+
+def _worker_main(conn, settings: RunSettings, decompose_fn: Callable | None) -> None:
+    """A worker process: warm up, then process the images the parent sends, one at a time."""
+
+    def terminate(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, terminate)
+    logging.basicConfig(level=logging.WARNING, format="torchiid: %(message)s")
+    kwargs = {} if decompose_fn is None else {"decompose_fn": decompose_fn}
+    try:
+        with contextlib.suppress(Exception):  # a broken model is reported per image
+            worker_state(settings)
+        conn.send(("ready", os.getpid()))
+        while True:
+            job = conn.recv()
+            if job is None:
+                break
+            try:
+                result = process_image(job, settings, **kwargs)
+            except InterruptedAfterCommit as done:
+                conn.send(("result", done.result))
+                break
+            conn.send(("result", result))
+    except (KeyboardInterrupt, EOFError, BrokenPipeError, ConnectionResetError):
+        pass
+    finally:
+        with contextlib.suppress(OSError):
+            conn.close()
+
+
+@contextlib.contextmanager
+def _thread_environment(threads: int):
+    """``OMP_NUM_THREADS`` etc. set for the processes started in the block."""
+    before = {name: os.environ.get(name) for name in THREAD_VARIABLES}
+    for name in THREAD_VARIABLES:
+        os.environ[name] = str(threads)
+    try:
+        yield
+    finally:
+        for name, value in before.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+@dataclass
+class _Worker:
+    process: Any
+    conn: Any
+    job: ImageJob | None = None
+    ready: bool = False
+    started_jobs: int = 0
+    stopping: bool = False
+    log: list = field(default_factory=list)
+
+
+def _death(exitcode: int | None) -> str:
+    if exitcode is not None and exitcode < 0:
+        try:
+            name = signal.Signals(-exitcode).name
+        except ValueError:
+            name = f"signal {-exitcode}"
+        return f"killed by {name}"
+    return f"exit status {exitcode}"
+
+
+class WorkerPool:
+    """N spawned worker processes that each process one image at a time.
+
+    Args:
+        workers: how many processes.
+        settings: the run's settings; ``settings.threads`` is each worker's torch thread count
+            (also set as ``OMP_NUM_THREADS`` etc. in its environment).
+        retries: how many more times an image is tried when its worker dies on it.
+        decompose_fn: the decomposition function (picklable: a module-level function);
+            ``None``: :func:`torchiid.model.decompose`.
+    """
+
+    def __init__(
+        self,
+        workers: int,
+        settings: RunSettings,
+        *,
+        retries: int = 1,
+        decompose_fn: Callable | None = None,
+    ) -> None:
+        if workers < 1:
+            raise TorchiidError(f"--workers must be >= 1, got {workers}")
+        self.n = workers
+        self.settings = settings
+        self.retries = retries
+        self.decompose_fn = decompose_fn
+        self.threads = settings.threads or max(1, available_cores() // workers)
+        self._ctx = multiprocessing.get_context("spawn")
+        self._workers: list[_Worker] = []
+        self.deaths = 0
+        self._early_deaths = 0
+
+    @property
+    def busy(self) -> list[ImageJob]:
+        """The images the workers are on."""
+        return [w.job for w in self._workers if w.job is not None]
+
+    def _start(self) -> _Worker:
+        parent, child = self._ctx.Pipe()
+        process = self._ctx.Process(
+            target=_worker_main,
+            args=(child, self.settings, self.decompose_fn),
+            name="torchiid-worker",
+            daemon=True,
+        )
+        with _thread_environment(self.threads):
+            process.start()
+        child.close()
+        worker = _Worker(process, parent)
+        self._workers.append(worker)
+        return worker
+
+    def run(self, jobs: Iterable[ImageJob]) -> Iterator[ImageResult]:
+        """Process the jobs; yields each image's result as it ends (any order).
+
+        Raises:
+            KeyboardInterrupt: interrupted (the workers are stopped first; results that
+                arrived while they stopped were yielded before).
+            TorchiidError: the worker processes die before they can take an image.
+        """
+        queue = deque(jobs)
+        pending = len(queue)
+        try:
+            for _ in range(min(self.n, pending)):
+                self._start()
+            while pending:
+                waitables = {}
+                for w in self._workers:
+                    waitables[w.conn] = w
+                    waitables[w.process.sentinel] = w
+                for ready in wait(list(waitables)):
+                    w = waitables[ready]
+                    if w not in self._workers:
+                        continue  # already handled through its other handle
+                    message = None
+                    if ready is w.conn:
+                        try:
+                            message = w.conn.recv()
+                        except (EOFError, OSError):
+                            message = None
+                    if message is None:
+                        result = self._died(w, queue)
+                        if result is not None:
+                            pending -= 1
+                            yield result
+                        if queue and len(self._workers) < self.n:
+                            self._start()
+                        continue
+                    kind, payload = message
+                    if kind == "result":
+                        w.job = None
+                        pending -= 1
+                        yield payload
+                    else:
+                        w.ready = True
+                    if w.job is None:
+                        self._give(w, queue)
+        except BaseException:
+            self._stop_all()
+            raise
+        self._stop_all()
+
+    def _give(self, w: _Worker, queue: deque) -> None:
+        if queue:
+            w.job = queue.popleft()
+            w.started_jobs += 1
+            w.conn.send(w.job)
+        else:
+            with contextlib.suppress(OSError):
+                w.conn.send(None)
+            w.stopping = True
+
+    def _died(self, w: _Worker, queue: deque) -> ImageResult | None:
+        """Handle a worker that exited; returns the result of its image if that is final."""
+        w.process.join(timeout=5)
+        self._workers.remove(w)
+        with contextlib.suppress(OSError):
+            w.conn.close()
+        job = w.job
+        if job is None:
+            if not w.stopping:
+                self._early_deaths += 1
+                if self._early_deaths >= 3 * self.n:
+                    raise TorchiidError(
+                        "the worker processes die before they take an image "
+                        f"({_death(w.process.exitcode)}); run without --workers to see why"
+                    )
+            return None
+        self.deaths += 1
+        how = _death(w.process.exitcode)
+        folder = Path(self.settings.out, job.folder) if job.folder else Path(self.settings.out)
+        remove_temporary_sets(folder, job.stem)
+        if job.attempt <= self.retries:
+            log.warning("%s: the worker process on it died (%s); trying it again", job.path, how)
+            queue.appendleft(with_attempt(job, job.attempt + 1))
+            return None
+        attempts = job.attempt
+        return ImageResult(
+            job.index,
+            job.key,
+            job.path,
+            "failed",
+            message=f"{job.path}: the worker process died while processing it ({how}), "
+            f"{attempts} time(s)",
+            attempts=attempts,
+            worker=f"pid {w.process.pid}",
+            failure="worker",
+        )
+
+    def _stop_all(self) -> None:
+        """Stop every worker (SIGTERM to those on an image), then reap them."""
+        for w in self._workers:
+            if w.process.is_alive():
+                if w.job is not None:
+                    with contextlib.suppress(OSError):
+                        os.kill(w.process.pid, signal.SIGTERM)
+                else:
+                    with contextlib.suppress(OSError):
+                        w.conn.send(None)
+        self.late_results: list[ImageResult] = []
+        for w in self._workers:
+            w.process.join(timeout=STOP_GRACE)
+            while True:  # an image that completed while it stopped is reported
+                try:
+                    if not w.conn.poll(0):
+                        break
+                    kind, payload = w.conn.recv()
+                except (EOFError, OSError):
+                    break
+                if kind == "result":
+                    self.late_results.append(payload)
+            if w.process.is_alive():
+                w.process.kill()
+                w.process.join(timeout=5)
+            if w.job is not None and not any(r.index == w.job.index for r in self.late_results):
+                j = w.job
+                folder = Path(self.settings.out, j.folder) if j.folder else Path(self.settings.out)
+                remove_temporary_sets(folder, j.stem)
+            with contextlib.suppress(OSError):
+                w.conn.close()
+        self._workers = []
