@@ -213,3 +213,42 @@ def test_every_solve_is_reported_with_its_convergence():
     for r in loose.solves:
         if r.stage == "shading":
             assert r.converged and r.residual <= 1e-3 and r.iterations < 3000
+
+
+def _print_on_same_hue(h=96, w=128):
+    """Dark strokes of the ground's own chromaticity (4x darker) under a smooth light."""
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
+    shade = 0.35 + 0.65 * (0.5 + 0.5 * torch.cos(2.2 * xx + 0.8 * yy))
+    ground = torch.tensor([0.45, 0.75, 0.45]).view(3, 1)
+    refl = ground.view(3, 1, 1).expand(3, h, w).clone()
+    strokes = torch.zeros(h, w, dtype=torch.bool)
+    for r0 in (20, 44, 68):
+        for c0 in range(12, 116, 14):
+            strokes[r0 : r0 + 14, c0 : c0 + 3] = True
+            strokes[r0 : r0 + 3, c0 : c0 + 9] = True
+    refl[:, strokes] = ground * 0.25
+    return (refl * shade)[None], shade, strokes
+
+
+def test_intensity_aware_retinex_keeps_print_out_of_the_shading():
+    # the paper's near-binary chromaticity weights tie the print to its ground, so the whole
+    # print (log 0.25 = -1.39) lands in the shading; t_i leaves it to the reflectance
+    image, shade, strokes = _print_on_same_hue()
+    base = Parameters().replace(
+        iterations=2,
+        patch_size=32,
+        patch_stride=16,
+        shading_preconditioner="multigrid",
+        cg_max_iter=200,
+        warm_cg_max_iter=0,
+    )
+    residue = {}
+    for t_i in (0.0, 0.3):
+        log_s = decompose(image, base.replace(t_i=t_i)).shading[0, 0].log()
+        true = shade.log()
+        residue[t_i] = float(
+            (log_s[strokes].mean() - log_s[~strokes].mean())
+            - (true[strokes].mean() - true[~strokes].mean())
+        )
+    assert residue[0.0] < -1.0
+    assert abs(residue[0.3]) < 0.05

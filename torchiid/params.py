@@ -57,6 +57,9 @@ class Parameters:
         lambda_l: weight of the local Retinex term ``S_l``.
         t_c: chromaticity deviation of ``S_l``'s weights.
         t_b: dark-pixel deviation of ``S_l``'s weights.
+        t_i: intensity deviation of ``S_l``'s weights (0: off, the paper's weights): pairs
+            of the same chromaticity whose log-intensities differ by much more than ``t_i`` are
+            not tied (dark print on a light ground of its own hue is not shading).
         t_m: deviation of ``S_m``'s weights on ``1 - <g_i, g_j>``.
         matting_eps: ε of the matting Laplacian (Levin et al.: 1e-5).
         dark_eps: intensities are clamped to at least this before taking logs.
@@ -148,6 +151,7 @@ class Parameters:
     lambda_l: float = 2.0
     t_c: float = 1e-4
     t_b: float = 0.05
+    t_i: float = 0.0
     t_m: float = 0.05
     matting_eps: float = 1e-5
     dark_eps: float = 1e-4
@@ -269,6 +273,7 @@ class Parameters:
             "clip_level",
             "base_sigma",
             "t_g",
+            "t_i",
         ]
         for name in nonneg:
             if getattr(self, name) < 0:
@@ -349,6 +354,7 @@ class Parameters:
         return ShadingOptions(
             t_c=self.t_c,
             t_b=self.t_b,
+            t_i=self.t_i,
             t_m=self.t_m,
             matting_eps=self.matting_eps,
             dark_eps=self.dark_eps,

@@ -139,3 +139,22 @@ def test_errors():
         retinex_term(torch.rand(1, 3, 6, 5), st)
     with pytest.raises(ShapeError, match="mask"):
         retinex_term(torch.rand(1, 3, 5, 5), st, mask=torch.ones(1, 1, 4, 5, dtype=torch.bool))
+
+
+def test_intensity_factor_cuts_same_hue_edges_only():
+    # three columns of one chromaticity: 0.6, 0.57 (a 5% shading step) and 0.15 (dark print)
+    img = torch.tensor([0.6, 0.4, 0.2]).view(1, 3, 1, 1).repeat(1, 1, 3, 3)
+    img[0, :, :, 1] *= 0.95
+    img[0, :, :, 2] *= 0.25
+    st = shading_stencil(3, 3)
+    off = retinex_weights(img, st, t_c=1e-4, t_b=0.05)
+    on = retinex_weights(img, st, t_c=1e-4, t_b=0.05, t_i=0.3)
+    # (0, 1) neighbours: column 0 -> 1 keeps its weight, column 1 -> 2 (print edge) is cut
+    assert float(on[0, 0, 0, 0]) == pytest.approx(
+        float(off[0, 0, 0, 0]) * math.exp(-(math.log(0.95) ** 2) / 0.09), rel=1e-4
+    )
+    assert float(on[0, 0, 0, 0]) > 0.97 * float(off[0, 0, 0, 0])
+    assert float(off[0, 0, 0, 1]) > 0.99
+    assert float(on[0, 0, 0, 1]) < 1e-3
+    with pytest.raises(ParameterError, match="t_i"):
+        retinex_weights(img, st, t_i=-1.0)

@@ -171,3 +171,23 @@ def test_channels_last_image_gives_the_same_answer():
     a = solve_shading(problem, W, opts)
     b = solve_shading(problem.replace(image=img), W, opts)
     torch.testing.assert_close(a.log_shading, b.log_shading, rtol=0, atol=1e-7)
+
+
+def test_an_overflowing_solve_still_gives_finite_layers(monkeypatch):
+    # an early-stopped Jacobi solve once overflowed to +inf at one barely constrained pixel
+    # (frog1, coarse_levels=1), which turned the final layers NaN; the stage keeps s finite
+    import torchiid.stages.shading as stage
+
+    real = stage.pcg
+
+    def overflowing(*args, **kwargs):
+        res = real(*args, **kwargs)
+        res.x[0, 0, 3, 4] = float("inf")
+        res.x[0, 0, 5, 6] = float("nan")
+        return res
+
+    monkeypatch.setattr(stage, "pcg", overflowing)
+    _, problem = _inputs(24, 24, dtype=torch.float32)
+    res = solve_shading(problem, W, ShadingOptions(max_iter=20, warn=False))
+    for x in (res.log_shading, res.shading, res.reflectance):
+        assert bool(torch.isfinite(x).all())

@@ -137,16 +137,23 @@ def retinex_weights(
     t_b: float = 0.05,
     dark_eps: float = 1e-4,
     confidence: torch.Tensor | None = None,
+    t_i: float = 0.0,
 ) -> torch.Tensor:
     """Pair weights ``w^l`` of ``S_l`` (Eq. 5), ``(B, 3, H, W) -> (B, K, H, W)``.
 
     ``exp(-(1 - <pbar_i, pbar_j>)^2 / t_c^2) * [1 + exp(-(p_i^2 + p_j^2) / t_b^2)]`` on linear RGB.
-    With a pixel ``confidence`` (:func:`pixel_confidence`) and ``c_ij = min(c_i, c_j)``, the
-    chromaticity factor becomes ``c_ij * exp(...) + (1 - c_ij)``: a pair without trustworthy
-    colours (dark or clipped) is not cut apart by its noisy chromaticity.
+    With ``t_i > 0`` the chromaticity factor is also multiplied by the intensity factor
+    ``exp(-(log p_i - log p_j)^2 / t_i^2)``: two neighbours of the same chromaticity but very
+    different brightness (dark print on a light ground of its hue) are no longer declared the
+    same material; their shading is left to the other, non-local priors (``t_i = 0``: the
+    paper's weights). With a pixel ``confidence`` (:func:`pixel_confidence`) and
+    ``c_ij = min(c_i, c_j)``, the colour factor becomes ``c_ij * factor + (1 - c_ij)``: a pair
+    without trustworthy colours (dark or clipped) is not cut apart by its noisy colour.
     """
     if t_c <= 0 or t_b <= 0:
         raise ParameterError(f"t_c and t_b must be > 0, got t_c={t_c}, t_b={t_b}")
+    if t_i < 0:
+        raise ParameterError(f"t_i must be >= 0 (0: off), got {t_i}")
     chrom = image.clamp_min(dark_eps)
     chrom = chrom / chrom.norm(dim=1, keepdim=True)
     cos = (chrom.unsqueeze(2) * stencil.neighbours(chrom)).sum(1)  # (B, K, H, W)
@@ -154,6 +161,9 @@ def retinex_weights(
     pj = stencil.neighbours(p)[:, 0]
     dark = 1 + torch.exp(-(p**2 + pj**2) / t_b**2)
     chroma = torch.exp(-((1 - cos) ** 2) / t_c**2)
+    if t_i > 0:
+        dlog = p.log() - pj.log()
+        chroma = chroma * torch.exp(-(dlog**2) / t_i**2)
     if confidence is not None:
         c = pair_confidence(stencil, confidence)
         chroma = c * chroma + (1 - c)
@@ -175,6 +185,7 @@ def retinex_term(
     dark_eps: float = 1e-4,
     mask: torch.Tensor | None = None,
     confidence: torch.Tensor | None = None,
+    t_i: float = 0.0,
 ) -> StencilQuadratic:
     """The local Retinex prior ``S_l`` (Eq. 5) on the log-shading.
 
@@ -194,6 +205,7 @@ def retinex_term(
             :func:`retinex_weights`), so where the image carries no information (dark or
             clipped pixels) the term asks for smooth shading (``s_i = s_j``) instead of
             copying noise: the shading there continues its surroundings.
+        t_i: intensity deviation (0: off, the paper's weights); see :func:`retinex_weights`.
 
     Returns:
         ``StencilQuadratic`` with target differences of ``log p``.
@@ -204,7 +216,7 @@ def retinex_term(
             f"image is {tuple(image.shape[-2:])} but the stencil is "
             f"{(stencil.height, stencil.width)}"
         )
-    w = retinex_weights(image, stencil, t_c, t_b, dark_eps, confidence)
+    w = retinex_weights(image, stencil, t_c, t_b, dark_eps, confidence, t_i)
     pm = pair_mask(stencil, mask, w.dtype)
     if pm is not None:
         w = w * pm

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import time
 import warnings
 from collections.abc import Callable
@@ -398,8 +399,9 @@ def build_shading_system(
                 confidence=(
                     pixel_confidence(image, o.dark_level, o.clip_level) if confident else None
                 ),
+                t_i=o.t_i,
             ),
-            input_key(given, o.t_c, o.t_b, o.dark_eps, o.dark_level, o.clip_level, mask),
+            input_key(given, o.t_c, o.t_b, o.t_i, o.dark_eps, o.dark_level, o.clip_level, mask),
         )
     if not terms:
         raise ParameterError("every shading term is switched off; enable at least one")
@@ -496,7 +498,11 @@ def solve_shading(
     times["solve"] = time.perf_counter() - t0
     if cache is not None and fresh:
         cache.preconditioner, cache.fresh_iterations = precond, res.iterations
-    s = res.x * m
+    # a row the priors barely constrain (every pair cut) can make an early-stopped,
+    # Jacobi-preconditioned solve overflow in float32; keep s finite and within 1e±8 of the
+    # light's level (beyond any real shading) so the next alternation and R = I / S stay defined
+    bound = -2.0 * math.log(o.dark_eps)
+    s = torch.nan_to_num(res.x, nan=0.0, posinf=bound, neginf=-bound).clamp_(-bound, bound) * m
     s = s + (target - (s * m).flatten(1).sum(1).view(b, 1, 1, 1) / area) * m
     if o.warn and not res.converged:
         warnings.warn(
