@@ -1,6 +1,7 @@
 """The ``torchiid`` command line: a thin layer over the library.
 
-Subcommands: ``decompose`` (the method, or colour Retinex), ``features`` (look at the Stage 0
+Subcommands: ``decompose`` (the method, or colour Retinex), ``decompose-video`` (frame
+sequences, temporally consistent), ``features`` (look at the Stage 0
 features), ``export-onnx`` (write the ONNX backbone) and ``eval`` (metrics on datasets).
 Errors a user can cause end in a one-line ``torchiid: error: ...`` and a non-zero exit status:
 0 when everything was done, 1 when some inputs failed (the others were done), 2 for a usage or
@@ -171,6 +172,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="where to write (default: the cache used by the library)",
     )
 
+    from torchiid.commands.video import add_video_parser
+
+    add_video_parser(sub)
     from torchiid.commands.eval import add_eval_parser
 
     add_eval_parser(sub)
@@ -201,6 +205,12 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_decompose_video(args: argparse.Namespace) -> int:
+    from torchiid.commands.video import run_decompose_video
+
+    return run_decompose_video(args)
+
+
 def _cmd_eval(args: argparse.Namespace) -> int:
     from torchiid.commands.eval import run_eval
 
@@ -222,6 +232,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     handlers = {
         "decompose": _cmd_decompose,
+        "decompose-video": _cmd_decompose_video,
         "features": _cmd_features,
         "export-onnx": _cmd_export,
         "eval": _cmd_eval,

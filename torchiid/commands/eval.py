@@ -42,6 +42,12 @@ most 4 x batch-size images wait in memory for a partner of their size).
 seconds (results.csv): the method's wall time per image (a batch's time divided by its
 size; dataset reading and scoring excluded); with --results, the time to read and score.
 
+video (torchiid eval video FRAMES RESULTS [--flow DIR]): the warping error of Lai et al.
+(2018) of the reflectance in RESULTS (frame-XXXXXX-* files of decompose-video, or
+<frame stem>-* of decompose) for every pair of consecutive frames: flow estimated on the
+frames (OpenCV DIS), non-occluded pixels by a forward-backward check, and with --flow the
+given flows; with -o, OUT/video-summary.json.
+
 exit status: 0 when every image was scored, 1 when some failed, 2 on a usage error."""
 
 
@@ -57,8 +63,16 @@ def add_eval_parser(subparsers: Any) -> argparse.ArgumentParser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("dataset", choices=DATASETS, help="which benchmark layout DIR has")
+    p.add_argument("dataset", choices=[*DATASETS, "video"], help="which benchmark layout DIR has")
     p.add_argument("dir", type=Path, metavar="DIR", help="the dataset directory")
+    p.add_argument(
+        "results_dir",
+        type=Path,
+        nargs="?",
+        metavar="RESULTS_DIR",
+        help="(video only) the decompose-video output folder to score; DIR holds the input "
+        "frames (or is the video file)",
+    )
     p.add_argument(
         "-o", "--output", type=Path, help="output folder (default: ./eval-<dataset>-<method>)"
     )
@@ -112,6 +126,20 @@ def add_eval_parser(subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--delta", type=float, default=0.10, help="WHDR equality margin (iiw)")
+    p.add_argument(
+        "--flow",
+        type=Path,
+        metavar="DIR",
+        help="(video) ground-truth flows: <frame stem>.flo (Middlebury) from each frame to the "
+        "next, occlusions in <stem>-occlusions.png or Sintel's occlusions_NNNN.png",
+    )
+    p.add_argument(
+        "--space",
+        choices=["srgb", "linear"],
+        default="srgb",
+        help="(video) values the warping error compares: sRGB (default, as Lai et al.) or "
+        "linear, both in [0, 1]",
+    )
     return p
 
 
@@ -158,6 +186,12 @@ def _report_failure(sample_id: str, exc: Exception) -> None:
 
 def run_eval(args: argparse.Namespace) -> int:
     """Run the ``eval`` subcommand; returns the exit status (1 if any image failed)."""
+    if args.dataset == "video":
+        from torchiid.commands.video import run_eval_video
+
+        return run_eval_video(args)
+    if args.results_dir is not None:
+        raise ParameterError(f"eval {args.dataset} takes one folder, got {args.results_dir} too")
     if args.batch_size < 1:
         raise ParameterError(f"--batch-size must be >= 1, got {args.batch_size}")
     if args.limit is not None and args.limit < 1:

@@ -1,0 +1,509 @@
+"""``torchiid decompose-video``: decompose the frames of a video, temporally consistent."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from torchiid.commands.decompose import add_parameter_options, params_from_args
+from torchiid.core.device import resolve_device
+from torchiid.core.exceptions import ImageError, ParameterError, TorchiidError
+from torchiid.eval.results import load_layer
+from torchiid.eval.video import evaluate_video
+from torchiid.io import load_image, load_mask
+from torchiid.io.layers import OutputError, OutputSet, check_output_folder
+from torchiid.params import Parameters
+from torchiid.video.flow import FLOW_METHODS
+from torchiid.video.frames import list_images, open_frames
+from torchiid.video.temporal import DEFAULT_TEMPORAL_WEIGHT, VideoDecomposer, VideoOptions
+from torchiid.video.write import (
+    PARAMS_NAME,
+    PREVIEW_NAME,
+    PreviewWriter,
+    frame_file_names,
+    frame_stem,
+    write_frame,
+)
+
+__all__ = ["add_video_parser", "run_decompose_video", "options_from_args"]
+
+log = logging.getLogger("torchiid")
+
+EPILOG = """\
+outputs: for frame i (1-based) frame-<i:06d>-reflectance.png, -shading.png, -preview.png,
+-reflectance-linear16.png, -shading.exr, -info.json (and the .npy pair with --save-npy), as
+`torchiid decompose` writes them; video-params.json (the parameters and video options) and,
+with --preview, preview.mp4 ([input | reflectance | shading], H.264). One albedo scale and one
+shading_white hold for the whole sequence (set by its first frame).
+
+existing outputs are kept unless --overwrite: a frame whose files exist is reported and
+skipped (status 1), and its reflectance, read back from frame-*-reflectance-linear16.png,
+continues the temporal chain, so an interrupted run can be resumed with the same command.
+
+exit status: 0 every frame written, 1 some frames failed (each reported in one line), 2 usage
+or set-up error (nothing decomposed), 130 interrupted."""
+
+
+def add_video_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Add the ``decompose-video`` subcommand to ``subparsers``."""
+    v = subparsers.add_parser(
+        "decompose-video",
+        help="split the frames of a video into reflectance and shading, temporally consistent",
+        description="Decompose a video file (needs PyAV: pip install 'torchiid[video]') or a "
+        "folder of frames (sorted by name) frame by frame, each frame tied to the previous one "
+        "by optical flow: the warped previous reflectance is the warm start of both stages and "
+        "the target of a temporal term, so the reflectance does not flicker.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    v.add_argument("input", type=Path, help="a video file or a folder of frames")
+    v.add_argument("-o", "--output", type=Path, required=True, help="output directory")
+    add_parameter_options(v)
+    v.add_argument(
+        "--masks",
+        type=Path,
+        metavar="DIR",
+        help="folder of masks (nonzero = inside), sorted by name: the i-th mask for the i-th "
+        "frame; as many masks as frames",
+    )
+    v.add_argument(
+        "--temporal-norm",
+        choices=["l2", "l1"],
+        default="l2",
+        help="the temporal term: l2 (an anchor, default) or l1 (inside Split-Bregman)",
+    )
+    v.add_argument(
+        "--temporal-weight",
+        type=float,
+        help="weight of the temporal term relative to Stage 2's data term (default: "
+        + ", ".join(f"{k} {w:g}" for k, w in DEFAULT_TEMPORAL_WEIGHT.items())
+        + "; 0 = none)",
+    )
+    v.add_argument(
+        "--frame-by-frame",
+        action="store_true",
+        help="no temporal consistency: every frame decomposed on its own, as `decompose` does",
+    )
+    v.add_argument("--no-warm-start", action="store_true", help="start every frame's solves cold")
+    v.add_argument(
+        "--no-feature-reuse",
+        action="store_true",
+        help="compute Stage 0 for every frame (default: reused, warped, while the scene moves "
+        "little)",
+    )
+    v.add_argument(
+        "--flow",
+        choices=FLOW_METHODS,
+        default="dis",
+        help="optical flow (OpenCV): dis or farneback",
+    )
+    v.add_argument(
+        "--preview", action="store_true", help="also write preview.mp4 (input | R | S), needs PyAV"
+    )
+    v.add_argument(
+        "--fps", type=float, help="frame rate of the preview (default: the video's, or 24)"
+    )
+    v.add_argument(
+        "--save-npy", action="store_true", help="also write float32 linear .npy arrays per frame"
+    )
+    v.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    v.add_argument("--no-progress", action="store_true", help="no progress bar")
+    v.add_argument(
+        "--linear",
+        action="store_true",
+        help="8/16-bit frame files hold linear values (default: sRGB-encoded)",
+    )
+    v.add_argument(
+        "--device",
+        default="auto",
+        choices=["auto", "cpu", "cuda"],
+        help="where to run (auto: CUDA when available)",
+    )
+    return v
+
+
+def options_from_args(args: argparse.Namespace) -> VideoOptions:
+    """:class:`~torchiid.video.temporal.VideoOptions` from the command line."""
+    if args.frame_by_frame:
+        return VideoOptions.frame_by_frame()
+    if args.temporal_weight is not None and not args.temporal_weight >= 0:
+        raise ParameterError(f"--temporal-weight must be >= 0, got {args.temporal_weight}")
+    return VideoOptions(
+        temporal_norm=args.temporal_norm,
+        temporal_weight=args.temporal_weight,
+        warm_start=not args.no_warm_start,
+        reuse_features=not args.no_feature_reuse,
+        flow=args.flow,
+    )
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+def _error_message(where: str, exc: Exception) -> str:
+    """One line naming the frame and the problem."""
+    if isinstance(exc, TorchiidError):
+        msg = _one_line(str(exc))
+    elif isinstance(exc, OSError):
+        msg = f"cannot access {exc.filename or ''} ({exc.strerror or _one_line(str(exc))})"
+    elif isinstance(exc, (RuntimeError, MemoryError)):
+        msg = f"{type(exc).__name__}: {_one_line(str(exc))}"
+    else:
+        msg = (
+            f"internal error ({type(exc).__name__}: {_one_line(str(exc))}); "
+            "rerun with --verbose for the traceback"
+        )
+    return msg if where in msg else f"{where}: {msg}"
+
+
+def _params_json(params: Parameters, options: VideoOptions) -> str:
+    data = {
+        "params": json.loads(params.to_json()),
+        "video": {**options.__dict__, "temporal_weight": options.weight},
+    }
+    return json.dumps(data, indent=2) + "\n"
+
+
+def _resume(video: VideoDecomposer, out: Path, stem: str, image, mask) -> bool:
+    """Continue the chain from a frame written earlier; False when its files cannot be read."""
+    try:
+        refl = load_image(out / f"{stem}-reflectance-linear16.png", linear=True, min_side=1)
+        white = json.loads((out / f"{stem}-info.json").read_text(encoding="utf-8"))
+        white = float(white["shading_white"])
+        if refl.image.shape != image.shape:
+            return False
+        video.remember(image, refl.image, mask, shading_white=white)
+        return True
+    except (TorchiidError, OSError, ValueError, KeyError, TypeError):
+        return False
+
+
+def run_decompose_video(args: argparse.Namespace) -> int:
+    """Run ``decompose-video``; returns the exit status (see the command's epilog)."""
+    from tqdm import tqdm
+
+    params = params_from_args(args)
+    options = options_from_args(args)
+    if args.fps is not None and not args.fps > 0:
+        raise ParameterError(f"--fps must be > 0, got {args.fps}")
+    device = resolve_device(args.device)
+    out: Path = args.output
+    check_output_folder(out)
+    source = open_frames(args.input, linear=args.linear)
+    masks = None
+    if args.masks is not None:
+        if not args.masks.is_dir():
+            raise TorchiidError(f"{args.masks}: --masks must be a folder of mask images")
+        masks = list_images(args.masks)
+        if source.count is not None and len(masks) != source.count:
+            raise TorchiidError(
+                f"{args.masks}: holds {len(masks)} masks but {args.input} has {source.count} "
+                "frames; give one mask per frame"
+            )
+    show = not args.no_progress
+
+    def say(message: str) -> None:
+        if show:
+            tqdm.write(message, file=sys.stderr)
+        else:
+            print(message, file=sys.stderr)
+
+    failures = written = seen = 0
+    preview = None
+    if args.preview:
+        target = out / PREVIEW_NAME
+        if os.path.lexists(target) and not args.overwrite:
+            failures += 1
+            say(f"torchiid: error: {target} exists; pass --overwrite to replace it")
+        else:
+            preview = PreviewWriter(target, args.fps or source.fps or 24.0, overwrite=True)
+    video = VideoDecomposer(params, options)
+    params_written = False
+    bar = tqdm(
+        total=source.count, desc="frames", unit="frame", disable=not show, file=sys.stderr,
+        leave=False,
+    )  # fmt: skip
+    tx: OutputSet | None = None
+    where = str(args.input)
+    try:
+        for item in source:
+            seen += 1
+            where = f"{source.path / item.name}" if source.kind == "folder" else item.name
+            bar.update(1)
+            stem = frame_stem(item.index)
+            try:
+                if item.error is not None:
+                    raise item.error
+                image, mask = item.image, item.mask
+                if masks is not None:
+                    if item.index >= len(masks):
+                        raise ImageError(f"{args.masks}: no mask for frame {item.index + 1}")
+                    m = load_mask(masks[item.index], shape=tuple(image.shape[-2:]))
+                    mask = m if mask is None else (mask & m)
+                names = frame_file_names(stem, save_npy=args.save_npy)
+                existing = [out / n for n in names if os.path.lexists(out / n)]
+                for target in existing:
+                    if target.is_dir() and not target.is_symlink():
+                        raise OutputError(f"{target}: is a folder; cannot replace it by an output")
+                if existing and not args.overwrite:
+                    if not _resume(video, out, stem, image, mask):
+                        video.reset()
+                    elif preview is not None:
+                        _preview_from_files(preview, out, stem, image)
+                    raise OutputError(f"{existing[0]} exists; pass --overwrite to replace it")
+                t0 = time.perf_counter()
+                frame = video(image.to(device), None if mask is None else mask.to(device))
+                seconds = time.perf_counter() - t0
+                d = frame.decomposition
+                white = float(d.shading_white[0])
+                info = {
+                    "input": str(args.input),
+                    "frame": item.index + 1,
+                    "frame_name": item.name,
+                    "working_size": list(reversed(d.working_size)),
+                    "linked_to_previous": frame.linked,
+                    "trusted_share": round(frame.trusted, 4),
+                    "motion_px": round(frame.motion, 3),
+                    "features_reused": frame.features_reused,
+                    "scale": frame.scale,
+                    "albedo_quantile": params.albedo_quantile,
+                    "albedo_excess": float(d.albedo_excess[0]),
+                    "seconds": round(seconds, 3),
+                    "times": {k: round(v, 4) for k, v in frame.times.items()},
+                    "converged": d.converged,
+                    "solves": [str(r) for r in d.solves],
+                    "parameters": PARAMS_NAME,
+                }
+                refl = d.reflectance[0].cpu()
+                shading = d.shading[0].cpu()
+                msk = None if d.mask is None else d.mask[0].cpu()
+                tx = OutputSet(out, overwrite=args.overwrite, label=stem)
+                with tx:
+                    write_frame(
+                        tx, stem, image, refl, shading, shading_white=white, info=info,
+                        mask=msk, save_npy=args.save_npy,
+                    )  # fmt: skip
+                    tx.commit()
+                written, tx = written + 1, None
+                if not params_written:  # with the first frame: a run that fails writes nothing
+                    params_written = _write_params(out, params, options, args.overwrite, say)
+                if preview is not None:
+                    preview.add(image, refl, shading / white)
+                done = f"{where} -> {out}/{stem}-* ({seconds:.1f} s)"
+                if show:
+                    tqdm.write(done, file=sys.stderr)
+                else:
+                    log.info(done)
+            except Exception as exc:  # noqa: BLE001 - one bad frame must not stop the video
+                failures, tx = failures + 1, None
+                say(f"torchiid: error: {_error_message(where, exc)}")
+                if not isinstance(exc, TorchiidError):
+                    log.info("the error above came from here:", exc_info=exc)
+        if preview is not None:
+            try:
+                preview.commit()
+            except TorchiidError as exc:
+                failures += 1
+                say(f"torchiid: error: {_one_line(str(exc))}")
+    except KeyboardInterrupt:
+        bar.close()
+        if preview is not None:
+            preview.discard()
+        if tx is not None and tx.committed:
+            written += 1
+        print(
+            f"torchiid: interrupted; {written} frame(s) written"
+            + (" (the preview was not)" if preview is not None else ""),
+            file=sys.stderr,
+        )
+        return 130
+    except TorchiidError as exc:  # the video stream itself broke: nothing more to read
+        bar.close()
+        failures += 1
+        say(f"torchiid: error: {_one_line(str(exc))}")
+        if preview is not None:
+            preview.discard()
+    finally:
+        source.close()
+    bar.close()
+    if seen == 0:
+        raise TorchiidError(f"{args.input}: holds no frames")
+    if failures:
+        print(f"torchiid: {failures} of {seen} frame(s) failed", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _write_params(
+    out: Path, params: Parameters, options: VideoOptions, overwrite: bool, say
+) -> bool:
+    """Write ``video-params.json``; an existing one is kept (and said) without ``overwrite``."""
+    target = out / PARAMS_NAME
+    if os.path.lexists(target) and not overwrite:
+        say(f"torchiid: note: {target} exists and was kept; pass --overwrite to replace it")
+        return True
+    with OutputSet(out, overwrite=True, label="video-params") as tx:
+        text = _params_json(params, options)
+        tx.write(PARAMS_NAME, lambda p: p.write_text(text, encoding="utf-8"))
+        tx.commit()
+    return True
+
+
+def _preview_from_files(preview: PreviewWriter, out: Path, stem: str, image) -> None:
+    """Add a frame written by an earlier run to the preview, from its 8-bit files."""
+    refl = load_image(out / f"{stem}-reflectance.png", min_side=1).image
+    shading = load_image(out / f"{stem}-shading.png", min_side=1).image[:1]
+    preview.add(image, refl, shading)
+
+
+# --------------------------------------------------------------------------- eval video
+
+
+def _load_reflectance(results: Path, index: int, name: str):
+    """Frame ``index``'s reflectance from a results folder.
+
+    ``frame-XXXXXX-*`` (the files of ``decompose-video``), else ``<frame file stem>-*``
+    (``decompose`` run on the frames).
+    """
+    try:
+        return load_layer(results, frame_stem(index), "reflectance")
+    except TorchiidError as first:
+        stem = Path(name).stem
+        if " frame " in name:  # a video's frame has no file stem
+            raise first from None
+        try:
+            return load_layer(results, stem, "reflectance")
+        except TorchiidError:
+            raise TorchiidError(
+                f"{results}: no reflectance of frame {index + 1} ({name}): neither "
+                f"{frame_stem(index)}-* nor {stem}-*"
+            ) from None
+
+
+def run_eval_video(args: argparse.Namespace) -> int:
+    """``torchiid eval video FRAMES RESULTS [--flow DIR]``: warping errors; the exit status."""
+    from tqdm import tqdm
+
+    if args.results_dir is None:
+        raise ParameterError(
+            "eval video needs two folders: the input frames (or video file) and the results "
+            "of decompose-video"
+        )
+    results: Path = args.results_dir
+    if not results.is_dir():
+        raise TorchiidError(f"{results}: no such results folder")
+    if args.flow is not None and not args.flow.is_dir():
+        raise TorchiidError(f"{args.flow}: no such flow folder")
+    summary_path = None
+    if args.output is not None:
+        check_output_folder(args.output)
+        summary_path = args.output / "video-summary.json"
+        if os.path.lexists(summary_path) and not args.overwrite:
+            raise OutputError(f"{summary_path} exists; pass --overwrite to replace it")
+    source = open_frames(args.dir)
+    show = not args.no_progress
+    rows, failures, prev = [], 0, None
+    bar = tqdm(total=source.count, desc="frames", unit="frame", disable=not show, file=sys.stderr)
+    try:
+        for item in source:
+            bar.update(1)
+            try:
+                if item.error is not None:
+                    raise item.error
+                refl = _load_reflectance(results, item.index, item.name)
+                if tuple(refl.shape[-2:]) != tuple(item.image.shape[-2:]):
+                    raise ImageError(
+                        f"{results}: the reflectance of frame {item.index + 1} is "
+                        f"{refl.shape[-1]}x{refl.shape[-2]}, the frame "
+                        f"{item.image.shape[-1]}x{item.image.shape[-2]}"
+                    )
+                current = (item.image, refl, item.name)
+            except Exception as exc:  # noqa: BLE001 - the other pairs go on
+                failures += 1
+                bar.write(f"torchiid: error: {_error_message(item.name, exc)}", file=sys.stderr)
+                prev = None
+                continue
+            if prev is not None:
+                try:
+                    rows += evaluate_video(
+                        [prev[0], current[0]],
+                        [prev[1], current[1]],
+                        [prev[2], current[2]],
+                        flow_dir=args.flow,
+                        space=args.space,
+                    )
+                except TorchiidError as exc:
+                    failures += 1
+                    bar.write(f"torchiid: error: {_one_line(str(exc))}", file=sys.stderr)
+            prev = current
+    finally:
+        source.close()
+        bar.close()
+    if not rows:
+        print("torchiid: error: no pair of consecutive frames could be scored", file=sys.stderr)
+        return 1 if failures else 2
+    print(_video_table(rows, args.space))
+    if summary_path is not None:
+        _write_summary(summary_path, rows, args)
+        print(f"wrote {summary_path}")
+    if failures:
+        print(f"torchiid: {failures} frame(s) or pair(s) failed", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _mean(values) -> float | None:
+    vals = [v for v in values if v is not None and v == v]
+    return sum(vals) / len(vals) if vals else None
+
+
+def _video_table(rows, space: str) -> str:
+    def cell(v, digits=5) -> str:
+        return f"{'-':>12}" if v is None or v != v else f"{v:>12.{digits}f}"
+
+    width = max(len("mean"), *(len(f"{r.first} -> {r.second}") for r in rows))
+    head = (
+        f"{'pair':<{width}}  {'WE (est.)':>12}  {'input WE':>12}  {'valid':>12}  "
+        f"{'WE (given)':>12}  {'valid given':>12}"
+    )
+    lines = [f"warping error of the reflectance ({space} values in [0, 1])", head, "-" * len(head)]
+    for r in rows:
+        lines.append(
+            f"{r.first + ' -> ' + r.second:<{width}}  {cell(r.estimated)}  "
+            f"{cell(r.input_estimated)}  {cell(r.estimated_valid, 3)}  {cell(r.given)}  "
+            f"{cell(r.given_valid, 3)}"
+        )
+    lines.append("-" * len(head))
+    lines.append(
+        f"{'mean':<{width}}  {cell(_mean(r.estimated for r in rows))}  "
+        f"{cell(_mean(r.input_estimated for r in rows))}  "
+        f"{cell(_mean(r.estimated_valid for r in rows), 3)}  "
+        f"{cell(_mean(r.given for r in rows))}  {cell(_mean(r.given_valid for r in rows), 3)}"
+    )
+    return "\n".join(lines)
+
+
+def _write_summary(path: Path, rows, args: argparse.Namespace) -> None:
+    data = {
+        "frames": str(args.dir),
+        "results": str(args.results_dir),
+        "flow": None if args.flow is None else str(args.flow),
+        "space": args.space,
+        "mean": {
+            "estimated": _mean(r.estimated for r in rows),
+            "input_estimated": _mean(r.input_estimated for r in rows),
+            "given": _mean(r.given for r in rows),
+        },
+        "pairs": [r.__dict__ for r in rows],
+    }
+    text = json.dumps(data, indent=2, allow_nan=False, default=str) + "\n"
+    with OutputSet(path.parent, overwrite=True, label="video-summary") as tx:
+        tx.write(path.name, lambda p: p.write_text(text, encoding="utf-8"))
+        tx.commit()
