@@ -39,6 +39,9 @@ __all__ = ["ImageTaskError", "dask_task", "run_on_dask"]
 
 log = logging.getLogger("torchiid")
 
+#: seconds to wait for the scheduler
+CONNECT_TIMEOUT = 20.0
+
 
 class ImageTaskError(RuntimeError):
     """An image's task failed for a reason that may not recur (Dask retries it)."""
@@ -63,7 +66,7 @@ def _client(address: str, timeout: float):
             "--dask-scheduler needs the 'distributed' package: pip install 'torchiid[dask]'"
         ) from None
     try:
-        return Client(address, timeout=timeout, set_as_default=False)
+        return Client(address, timeout=timeout)
     except (OSError, TimeoutError, ValueError) as exc:
         raise TorchiidError(
             f"cannot reach the Dask scheduler at {address} ({' '.join(str(exc).split())})"
@@ -77,7 +80,7 @@ def run_on_dask(
     *,
     retries: int = 1,
     decompose_fn: Callable | None = None,
-    connect_timeout: float = 20.0,
+    connect_timeout: float | None = None,
     in_flight: list | None = None,
 ) -> Iterator[ImageResult]:
     """Run the jobs on the cluster of ``address``; yields each result as its task ends.
@@ -89,7 +92,7 @@ def run_on_dask(
         retries: Dask ``retries=`` of each task.
         decompose_fn: a picklable decomposition function (default
             :func:`torchiid.model.decompose`).
-        connect_timeout: seconds to wait for the scheduler.
+        connect_timeout: seconds to wait for the scheduler (default :data:`CONNECT_TIMEOUT`).
         in_flight: filled with the jobs not finished yet (for the interrupt message).
 
     Raises:
@@ -98,7 +101,7 @@ def run_on_dask(
     from distributed import as_completed
     from distributed.scheduler import KilledWorker
 
-    client = _client(address, connect_timeout)
+    client = _client(address, CONNECT_TIMEOUT if connect_timeout is None else connect_timeout)
     phash = params_hash(settings)
     token = secrets.token_hex(4)
     futures = {}

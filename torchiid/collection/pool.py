@@ -81,16 +81,26 @@ def remove_temporary_sets(folder: Path, stem: str | None = None) -> int:
     return removed
 
 
+_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+
+
 def _worker_main(conn, settings: RunSettings, decompose_fn: Callable | None) -> None:
-    """A worker process: warm up, then process the images the parent sends, one at a time."""
+    """A worker process: warm up, then process the images the parent sends, one at a time.
+
+    It starts with SIGINT and SIGTERM blocked (see :meth:`WorkerPool._start`), so that an
+    interrupt during the start-up imports waits until here; both then raise
+    ``KeyboardInterrupt``, which ends the worker after telling the parent.
+    """
 
     def terminate(signum, frame):
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, terminate)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     logging.basicConfig(level=logging.WARNING, format="torchiid: %(message)s")
     kwargs = {} if decompose_fn is None else {"decompose_fn": decompose_fn}
     try:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, _SIGNALS)
         with contextlib.suppress(Exception):  # a broken model is reported per image
             worker_state(settings)
         conn.send(("ready", os.getpid()))
@@ -104,9 +114,13 @@ def _worker_main(conn, settings: RunSettings, decompose_fn: Callable | None) -> 
                 conn.send(("result", done.result))
                 break
             conn.send(("result", result))
-    except (KeyboardInterrupt, EOFError, BrokenPipeError, ConnectionResetError):
+    except KeyboardInterrupt:
+        with contextlib.suppress(Exception):
+            conn.send(("interrupted", os.getpid()))
+    except (EOFError, BrokenPipeError, ConnectionResetError):
         pass
     finally:
+        signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)  # the exit is not interrupted
         with contextlib.suppress(OSError):
             conn.close()
 
@@ -158,6 +172,7 @@ class WorkerPool:
         retries: how many more times an image is tried when its worker dies on it.
         decompose_fn: the decomposition function (picklable: a module-level function);
             ``None``: :func:`torchiid.model.decompose`.
+        on_retry: called with the image and how its worker died, before it is tried again.
     """
 
     def __init__(
@@ -167,6 +182,7 @@ class WorkerPool:
         *,
         retries: int = 1,
         decompose_fn: Callable | None = None,
+        on_retry: Callable[[ImageJob, str], None] | None = None,
     ) -> None:
         if workers < 1:
             raise TorchiidError(f"--workers must be >= 1, got {workers}")
@@ -174,15 +190,20 @@ class WorkerPool:
         self.settings = settings
         self.retries = retries
         self.decompose_fn = decompose_fn
+        self.on_retry = on_retry
         self.threads = settings.threads or max(1, available_cores() // workers)
         self._ctx = multiprocessing.get_context("spawn")
         self._workers: list[_Worker] = []
         self.deaths = 0
         self._early_deaths = 0
+        self.stopped_on: list[ImageJob] | None = None
+        self.late_results: list[ImageResult] = []
 
     @property
     def busy(self) -> list[ImageJob]:
-        """The images the workers are on."""
+        """The images the workers are on (after an interrupt: those they were stopped on)."""
+        if self.stopped_on is not None:
+            return list(self.stopped_on)
         return [w.job for w in self._workers if w.job is not None]
 
     def _start(self) -> _Worker:
@@ -193,8 +214,12 @@ class WorkerPool:
             name="torchiid-worker",
             daemon=True,
         )
-        with _thread_environment(self.threads):
-            process.start()
+        old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)  # inherited: see above
+        try:
+            with _thread_environment(self.threads):
+                process.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
         child.close()
         worker = _Worker(process, parent)
         self._workers.append(worker)
@@ -218,17 +243,30 @@ class WorkerPool:
                 for w in self._workers:
                     waitables[w.conn] = w
                     waitables[w.process.sentinel] = w
+                handled: set[int] = set()
                 for ready in wait(list(waitables)):
                     w = waitables[ready]
-                    if w not in self._workers:
+                    if id(w) in handled or w not in self._workers:
                         continue  # already handled through its other handle
-                    message = None
-                    if ready is w.conn:
-                        try:
-                            message = w.conn.recv()
-                        except (EOFError, OSError):
-                            message = None
-                    if message is None:
+                    handled.add(id(w))
+                    messages = []
+                    try:  # what it sent before it exited counts first
+                        while w.conn.poll(0):
+                            messages.append(w.conn.recv())
+                    except (EOFError, OSError):
+                        pass
+                    for kind, payload in messages:
+                        if kind == "interrupted":  # Ctrl-C reached the workers: stop the run
+                            raise KeyboardInterrupt
+                        if kind == "result":
+                            w.job = None
+                            pending -= 1
+                            yield payload
+                        else:
+                            w.ready = True
+                    if not messages or not w.process.is_alive():
+                        if w.process.is_alive() and not w.conn.closed:
+                            continue
                         result = self._died(w, queue)
                         if result is not None:
                             pending -= 1
@@ -236,13 +274,6 @@ class WorkerPool:
                         if queue and len(self._workers) < self.n:
                             self._start()
                         continue
-                    kind, payload = message
-                    if kind == "result":
-                        w.job = None
-                        pending -= 1
-                        yield payload
-                    else:
-                        w.ready = True
                     if w.job is None:
                         self._give(w, queue)
         except BaseException:
@@ -281,7 +312,10 @@ class WorkerPool:
         folder = Path(self.settings.out, job.folder) if job.folder else Path(self.settings.out)
         remove_temporary_sets(folder, job.stem)
         if job.attempt <= self.retries:
-            log.warning("%s: the worker process on it died (%s); trying it again", job.path, how)
+            if self.on_retry is not None:
+                self.on_retry(job, how)
+            else:
+                log.warning("%s: its worker process died (%s); trying it again", job.path, how)
             queue.appendleft(with_attempt(job, job.attempt + 1))
             return None
         attempts = job.attempt
@@ -307,7 +341,7 @@ class WorkerPool:
                 else:
                     with contextlib.suppress(OSError):
                         w.conn.send(None)
-        self.late_results: list[ImageResult] = []
+        self.stopped_on = [w.job for w in self._workers if w.job is not None]
         for w in self._workers:
             w.process.join(timeout=STOP_GRACE)
             while True:  # an image that completed while it stopped is reported
@@ -319,6 +353,7 @@ class WorkerPool:
                     break
                 if kind == "result":
                     self.late_results.append(payload)
+                    self.stopped_on = [j for j in self.stopped_on if j.index != payload.index]
             if w.process.is_alive():
                 w.process.kill()
                 w.process.join(timeout=5)

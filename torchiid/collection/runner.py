@@ -112,6 +112,9 @@ class Reporter(Protocol):
     def result(self, result: ImageResult, progress: Progress) -> None:
         """One image ended."""
 
+    def retrying(self, job: ImageJob, how: str) -> None:
+        """The worker process on ``job`` died (``how``); the image is tried again."""
+
 
 class RunInterrupted(KeyboardInterrupt):  # noqa: N818 - it is an interrupt
     """The run was interrupted; ``summary`` says what it did before."""
@@ -213,10 +216,16 @@ def run_collection(
         elif workers is not None:
             from torchiid.collection.pool import WorkerPool
 
-            pool = WorkerPool(workers, settings, retries=retries, decompose_fn=decompose_fn)
+            pool = WorkerPool(
+                workers,
+                settings,
+                retries=retries,
+                decompose_fn=decompose_fn,
+                on_retry=getattr(reporter, "retrying", None),
+            )
             results = pool.run(jobs)
             busy = lambda: pool.busy  # noqa: E731
-            late = lambda: getattr(pool, "late_results", [])  # noqa: E731
+            late = lambda: pool.late_results  # noqa: E731
         else:
             current: list[ImageJob] = []
             results = _here(jobs, settings, decompose_fn, show_progress, phash, current)
@@ -232,9 +241,9 @@ def run_collection(
         summary.seconds = time.perf_counter() - t1
         return summary
     except KeyboardInterrupt as exc:
-        on = busy()
         if results is not None:
             results.close()  # stops the workers; results that arrive meanwhile are kept
+        on = busy()
         if isinstance(exc, InterruptedAfterCommit):
             record(exc.result)
             on = [j for j in on if j.index != exc.result.index]

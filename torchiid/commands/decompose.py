@@ -140,6 +140,9 @@ class _Printer:
         else:
             log.info(line)
 
+    def retrying(self, job, how: str) -> None:
+        self.say(f"torchiid: note: {job.path}: its worker process died ({how}); trying it again")
+
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()

@@ -1,0 +1,86 @@
+"""``--dask-scheduler``: a real local cluster (2 worker processes), a bad file, a killed worker.
+
+One worker process is killed (SIGKILL, from the test) while it holds an image whose files are
+written but not in place (``TORCHIID_TEST_HOLD``, see ``torchiid.collection.job``); the
+scheduler re-runs that task on a worker, every good image ends ``done``, the bad file
+``failed``, and no partial or temporary file is left.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+
+import pytest
+from conftest import FAST
+
+from torchiid.cli import main
+from torchiid.collection.manifest import read_records
+from torchiid.io.layers import layer_file_names
+
+distributed = pytest.importorskip("distributed")
+
+
+@pytest.fixture
+def cluster(monkeypatch, tmp_path):
+    hold = tmp_path / "hold"
+    hold.mkdir()
+    # the worker processes inherit the environment: the hook and one thread each
+    monkeypatch.setenv("TORCHIID_TEST_HOLD", f"IMG_0002:{hold}")
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    with distributed.LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=None,
+        silence_logs=50,
+    ) as c:
+        yield c, hold
+
+
+def test_a_dask_cluster_run_survives_a_killed_worker(library, tmp_path, cluster, capsys):
+    c, hold = cluster
+    marker = hold / "IMG_0002.pid"
+    killed = []
+
+    def kill_when_held():
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not marker.exists():
+            time.sleep(0.05)
+        if marker.exists():
+            pid = int(marker.read_text())
+            killed.append(pid)
+            os.kill(pid, signal.SIGKILL)
+
+    killer = threading.Thread(target=kill_when_held, daemon=True)
+    killer.start()
+    out = tmp_path / "out"
+    argv = ["decompose", str(library), "-r", "-o", str(out), "--retries", "1"]
+    assert main([*argv, "--dask-scheduler", c.scheduler_address, *FAST]) == 1  # the bad file
+    killer.join()
+    assert killed, "the held image never reached a worker"
+    err = capsys.readouterr().err
+    assert "4 done, 0 skipped, 1 failed" in err and "broken.png: is not an image" in err
+    records = {r["key"]: r for r in read_records(out / "manifest.jsonl")}
+    assert {k: r["status"] for k, r in records.items()} == {
+        "cover": "done",
+        "2019/IMG_0001": "done",
+        "2020/IMG_0001": "done",
+        "2020/broken": "failed",
+        "2020/trip/IMG_0002": "done",
+    }
+    assert records["2020/broken"]["failure"] == "input"
+    held = records["2020/trip/IMG_0002"]
+    assert str(killed[0]) != held["worker"].split(":")[-1]  # done by another worker process
+    workers = {r["worker"].split(":")[-1] for r in records.values()}
+    assert str(os.getpid()) not in workers  # the workers wrote the files, not the client
+    for record in records.values():
+        assert all((out / name).is_file() for name in record["files"])
+    made = {p.name for p in (out / "2020" / "trip").iterdir()}
+    assert made == set(layer_file_names("IMG_0002"))
+    assert not list(out.rglob(".*"))  # no temporary folder of the killed worker, no lock
+    # a rerun through the cluster skips everything
+    assert main([*argv, "--dask-scheduler", c.scheduler_address, *FAST]) == 1
+    assert "0 done, 5 skipped (1 failed before), 0 failed" in capsys.readouterr().err

@@ -1,0 +1,124 @@
+"""Inputs at scale: recursive folders, globs, list files, collision-free output keys."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+from conftest import photo
+
+from torchiid.core.exceptions import TorchiidError
+from torchiid.io.inputs import InputItem, list_inputs, read_list_file, unique_keys
+
+
+def _keys(items):
+    return [item.key for item in items]
+
+
+def test_a_folder_is_flat_unless_recursive(library):
+    assert _keys(list_inputs([library])) == ["cover"]
+    items = list_inputs([library], recursive=True)
+    assert _keys(items) == [
+        "cover",
+        "2019/IMG_0001",
+        "2020/IMG_0001",
+        "2020/broken",
+        "2020/trip/IMG_0002",
+    ]
+    assert items[1].path == library / "2019" / "IMG_0001.png"
+    assert items[4].stem == "IMG_0002" and items[4].folder == "2020/trip"
+    unique_keys(items)  # two IMG_0001 in different folders do not collide
+
+
+def test_recursive_listing_skips_hidden_folders_and_the_output_folder(library):
+    (library / ".thumbnails").mkdir()
+    photo(library / ".thumbnails" / "t.png")
+    out = library / "out"
+    photo(out / "cover-reflectance.png")  # outputs of an earlier run inside the input folder
+    keys = _keys(list_inputs([library], recursive=True, exclude=[out]))
+    assert not [k for k in keys if k.startswith(("out/", ".thumbnails"))]
+    assert "out/cover-reflectance" in _keys(list_inputs([library], recursive=True))
+
+
+def test_globs_keep_the_folders_below_their_fixed_part(library, monkeypatch):
+    monkeypatch.chdir(library.parent)
+    items = list_inputs(["library/*/IMG_0001.png", "library/**/IMG_0002.png"])
+    assert _keys(items) == ["2019/IMG_0001", "2020/IMG_0001", "2020/trip/IMG_0002"]
+    assert _keys(list_inputs(["library/20*/*"])) == [
+        "2019/IMG_0001",
+        "2020/IMG_0001",
+        "2020/broken",
+    ]  # image suffixes only: notes.txt and folders are not taken
+    with pytest.raises(TorchiidError, match=r"library/\*\.jpg: no image file matches"):
+        list_inputs(["library/*.jpg"])
+
+
+def test_an_existing_name_is_never_a_pattern(tmp_path):
+    odd = photo(tmp_path / "shot[1].png")
+    assert list_inputs([odd]) == [InputItem(odd, "shot[1]")]
+
+
+def test_text_list_relative_to_its_folder(library, tmp_path, monkeypatch):
+    listing = library / "list.txt"
+    listing.write_text(
+        "# my selection\n2019/IMG_0001.png\n\n2020/IMG_0001.png\n"
+        f"{library / '2020' / 'trip' / 'IMG_0002.png'}\n"
+    )
+    monkeypatch.chdir(tmp_path)  # relative paths follow the list, not the working folder
+    items = read_list_file(listing)
+    assert _keys(items) == ["2019/IMG_0001", "2020/IMG_0001", "2020/trip/IMG_0002"]
+    assert all(item.path.is_file() for item in items)
+
+
+def test_csv_list_with_masks(library):
+    mask = library / "masks" / "m.png"
+    mask.parent.mkdir()
+    mask.write_bytes(b"x")
+    listing = library / "list.csv"
+    listing.write_text("id,path,mask\n1,2019/IMG_0001.png,masks/m.png\n2,cover.png,\n")
+    items = read_list_file(listing)
+    assert _keys(items) == ["2019/IMG_0001", "cover"]
+    assert items[0].mask == library / "masks" / "m.png" and items[1].mask is None
+
+
+@pytest.mark.parametrize(
+    "name, content, message",
+    [
+        ("missing.txt", None, "missing.txt: no such list file"),
+        ("nopath.csv", "file,mask\na.png,\n", "a CSV list needs a 'path' column (columns: 'file'"),
+        ("emptypath.csv", "path\n\n,\n", "emptypath.csv: line 3: empty path"),
+        ("empty.txt", "# nothing\n\n", "empty.txt: the list names no image"),
+        ("latin1.txt", "caf\xe9.png\n".encode("latin-1"), "latin1.txt: not a UTF-8 text file"),
+    ],
+)
+def test_bad_list_files_are_one_line_errors(tmp_path, name, content, message):
+    path = tmp_path / name
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    elif content is not None:
+        path.write_text(content)
+    with pytest.raises(TorchiidError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        list_inputs([], lists=[path])
+
+
+def test_two_inputs_with_one_key_are_refused_repeats_dropped(library):
+    a = library / "2019" / "IMG_0001.png"
+    b = library / "2020" / "IMG_0001.png"
+    assert unique_keys(list_inputs([a, a])) == [InputItem(a, "IMG_0001")]
+    with pytest.raises(TorchiidError, match="two inputs would write the same outputs"):
+        unique_keys(list_inputs([a, b]))  # named on their own, both are IMG_0001
+
+
+def test_ten_thousand_files_list_quickly(tmp_path):
+    folder = tmp_path / "many"
+    folder.mkdir()
+    for i in range(10_000):
+        (folder / f"{i:05d}.jpg").write_bytes(b"")
+    import time
+
+    t0 = time.perf_counter()
+    items = unique_keys(list_inputs([folder], recursive=True))
+    assert len(items) == 10_000 and items[0].key == "00000"
+    assert time.perf_counter() - t0 < 5
+    assert os.path.basename(items[-1].path) == "09999.jpg" and Path(items[-1].path).parent == folder

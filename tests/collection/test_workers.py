@@ -1,0 +1,121 @@
+"""``--workers N``: spawned worker processes, a killed worker's image retried, interrupts.
+
+A worker is killed for real (SIGKILL from the test) while it holds an image whose files are
+written but not yet in place: ``TORCHIID_TEST_HOLD=<stem>:<folder>`` makes the worker write its
+pid into ``<folder>/<stem>.pid`` at that point and wait.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+from conftest import FAST
+
+from torchiid.cli import main
+from torchiid.collection.manifest import read_records
+from torchiid.io.layers import layer_file_names
+
+
+def _kill_when_held(folder, stem, sig=signal.SIGKILL, timeout=90):
+    """A thread that kills the process that writes ``<folder>/<stem>.pid``."""
+    marker = folder / f"{stem}.pid"
+
+    def run():
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and not marker.exists():
+            time.sleep(0.05)
+        if marker.exists():
+            os.kill(int(marker.read_text()), sig)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread
+
+
+def _last(out):
+    return {r["key"]: r for r in read_records(out / "manifest.jsonl")}
+
+
+def test_a_killed_worker_loses_only_its_image_which_is_retried(
+    library, tmp_path, monkeypatch, capsys
+):
+    hold = tmp_path / "hold"
+    hold.mkdir()
+    monkeypatch.setenv("TORCHIID_TEST_HOLD", f"IMG_0002:{hold}")
+    out = tmp_path / "out"
+    killer = _kill_when_held(hold, "IMG_0002")
+    argv = ["decompose", str(library), "-r", "-o", str(out), "--workers", "2", *FAST]
+    assert main(argv) == 1  # the bad file
+    killer.join()
+    err = capsys.readouterr().err
+    assert "IMG_0002.png: its worker process died (killed by SIGKILL); trying it again" in err
+    assert "4 done, 0 skipped, 1 failed" in err and "1 retried after their worker died" in err
+    records = _last(out)
+    assert records["2020/trip/IMG_0002"]["status"] == "done"
+    assert records["2020/trip/IMG_0002"]["attempts"] == 2
+    assert records["2020/broken"]["status"] == "failed"
+    workers = {r["worker"] for r in records.values()}
+    assert len(workers) >= 2 and str(os.getpid()) not in {w.split(":")[-1] for w in workers}
+    made = {p.name for p in (out / "2020" / "trip").iterdir()}
+    assert made == set(layer_file_names("IMG_0002"))  # complete, no temporary folder
+    assert not list(out.rglob(".*"))
+
+
+def test_an_image_whose_worker_dies_every_time_fails_alone(library, tmp_path, monkeypatch, capsys):
+    hold = tmp_path / "hold"
+    hold.mkdir()
+    monkeypatch.setenv("TORCHIID_TEST_HOLD", f"cover:{hold}")
+    out = tmp_path / "out"
+    killer = _kill_when_held(hold, "cover")
+    argv = ["decompose", str(library / "cover.png"), str(library / "2019"), "-o", str(out)]
+    assert main([*argv, "--workers", "1", "--retries", "0", *FAST]) == 1
+    killer.join()
+    err = capsys.readouterr().err
+    assert "cover.png: the worker process died while processing it (killed by SIGKILL)" in err
+    records = _last(out)
+    assert records["cover"]["failure"] == "worker" and records["IMG_0001"]["status"] == "done"
+    assert not [p for p in out.iterdir() if p.name.startswith("cover")]
+    assert not list(out.rglob(".*"))
+
+
+def test_ctrl_c_stops_every_worker_and_leaves_no_partial_outputs(library, tmp_path):
+    hold = tmp_path / "hold"
+    hold.mkdir()
+    out = tmp_path / "out"
+    env = {
+        **os.environ,
+        "OMP_NUM_THREADS": "1",
+        "PYTHONUNBUFFERED": "1",
+        "TORCHIID_TEST_HOLD": f"IMG_0002:{hold}",
+    }
+    argv = [sys.executable, "-m", "torchiid.cli", "decompose", str(library), "-r", "-o", str(out)]
+    proc = subprocess.Popen(
+        [*argv, "--workers", "2", *FAST],
+        env=env,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, like a terminal's foreground job
+    )
+    marker = hold / "IMG_0002.pid"
+    deadline = time.monotonic() + 90
+    while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert marker.exists(), proc.communicate()[1]
+    os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C: the whole group
+    err = proc.communicate(timeout=60)[1]
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err, err
+    assert "torchiid: interrupted while processing" in err and "IMG_0002.png" in err
+    assert not (out / "2020" / "trip").exists()  # nothing of the held image
+    assert not list(out.rglob(".*"))  # no temporary folder, no lock
+    for record in read_records(out / "manifest.jsonl"):
+        assert record["key"] != "2020/trip/IMG_0002"
+        for name in record["files"]:
+            assert (out / name).is_file()
