@@ -18,6 +18,7 @@ parent records the results that arrive, then returns.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import multiprocessing
 import os
@@ -187,11 +188,11 @@ class WorkerPool:
         if workers < 1:
             raise TorchiidError(f"--workers must be >= 1, got {workers}")
         self.n = workers
-        self.settings = settings
+        self.threads = settings.threads or max(1, available_cores() // workers)
+        self.settings = dataclasses.replace(settings, threads=self.threads)
         self.retries = retries
         self.decompose_fn = decompose_fn
         self.on_retry = on_retry
-        self.threads = settings.threads or max(1, available_cores() // workers)
         self._ctx = multiprocessing.get_context("spawn")
         self._workers: list[_Worker] = []
         self.deaths = 0
