@@ -84,3 +84,23 @@ def test_a_dask_cluster_run_survives_a_killed_worker(library, tmp_path, cluster,
     # a rerun through the cluster skips everything
     assert main([*argv, "--dask-scheduler", c.scheduler_address, *FAST]) == 1
     assert "0 done, 5 skipped (1 failed before), 0 failed" in capsys.readouterr().err
+
+
+def _buggy_decompose(*args, **kwargs):
+    raise RuntimeError("out of luck")
+
+
+def test_a_dask_task_raises_only_what_a_retry_may_cure(library, tmp_path):
+    from torchiid.collection import ImageJob, RunSettings, params_hash
+    from torchiid.collection.dask_runner import ImageTaskError, dask_task
+    from torchiid.params import Parameters
+
+    settings = RunSettings(out=tmp_path / "out", params=Parameters(), method="semantic")
+    phash = params_hash(settings)
+    bad = ImageJob(0, str(library / "2020" / "broken.png"), "broken")
+    result = dask_task(bad, settings, phash, _buggy_decompose)  # a bad input: a result
+    assert result.status == "failed" and result.failure == "input"
+    good = ImageJob(1, str(library / "cover.png"), "cover")
+    with pytest.raises(ImageTaskError, match=r"cover.png: RuntimeError: out of luck"):
+        dask_task(good, settings, phash, _buggy_decompose)  # Dask retries it (retries=)
+    assert not (tmp_path / "out").exists()

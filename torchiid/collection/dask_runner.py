@@ -19,7 +19,9 @@ killed workers are removed at the end of the run.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
+import os
 import secrets
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -107,6 +109,11 @@ def run_on_dask(
     futures = {}
     try:
         for job in jobs:
+            job = dataclasses.replace(  # the workers may run in another folder, or elsewhere
+                job,
+                path=os.path.abspath(job.path),
+                mask=None if job.mask is None else os.path.abspath(job.mask),
+            )
             future = client.submit(
                 dask_task,
                 job,

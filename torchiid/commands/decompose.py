@@ -7,6 +7,7 @@ everything that concerns the whole run before any image, and prints.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import os
 import sys
@@ -207,11 +208,14 @@ def run_decompose(args: argparse.Namespace) -> int:
             args.inputs, recursive=getattr(args, "recursive", False), lists=lists, exclude=[out]
         )
     )
-    if scheduler is not None:
-        out = Path(os.path.abspath(out))  # the workers may run elsewhere
     settings = _settings(args, params, out)
+    if scheduler is not None:  # the workers may run in another folder, or elsewhere
+        absolute = {"out": Path(os.path.abspath(out))}
+        if args.mask is not None:
+            absolute["mask"] = Path(os.path.abspath(args.mask))
+        settings = dataclasses.replace(settings, **absolute)
     if scheduler is None and workers is None:
-        settings = RunSettings(**{**settings.__dict__, "device": str(device)})
+        settings = dataclasses.replace(settings, device=str(device))
     printer = _Printer(args, args.output)
     try:
         summary = run_collection(
