@@ -298,6 +298,7 @@ def decompose(
     init: tuple[torch.Tensor, torch.Tensor] | None = None,
     temporal: TemporalPrior | None = None,
     return_features: bool = False,
+    schedule_start: int = 1,
 ) -> Decomposition:
     """Decompose linear RGB images into reflectance and shading (the paper's full method).
 
@@ -336,6 +337,10 @@ def decompose(
             in the paper. :mod:`torchiid.video` builds it from optical flow.
         return_features: keep the Stage 0 features in ``Decomposition.features`` (to pass
             them as ``features=`` for another image of the same scene).
+        schedule_start: run only the alternations ``schedule_start..params.iterations`` of
+            the §3.4 schedule, with their weights (default 1: all of them). With a warm start
+            that is already near the answer (the next frame of a video) the last alternations
+            refine it; the first alternation still starts from ``init`` (or cold).
 
     Returns:
         :class:`Decomposition` at the input's resolution and dtype. float16 and bfloat16
@@ -367,6 +372,14 @@ def decompose(
         )
     t_start = time.perf_counter()
     image, mask = _check_inputs(image, mask, params)
+    first = 1
+    if schedule_start != 1:
+        if not isinstance(schedule_start, int) or not 1 <= schedule_start <= params.iterations:
+            raise ParameterError(
+                f"schedule_start must be an alternation 1..{params.iterations}, "
+                f"got {schedule_start!r}"
+            )
+        first = schedule_start
     in_dtype = image.dtype
     if in_dtype in (torch.float16, torch.bfloat16):
         image = image.float()
@@ -407,7 +420,7 @@ def decompose(
     reflectance_cache = ReflectanceCache()  # and B's proposal-feature factor
     layers: list[IterationLayers] = []
     solves: list[SolveReport] = []
-    for k in range(1, params.iterations + 1):
+    for k in range(first, params.iterations + 1):
         t0 = time.perf_counter()
         if shading_w.active:
             problem = features.shading_problem(img, base_image=r_prev, mask=msk)

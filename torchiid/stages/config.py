@@ -205,7 +205,8 @@ class TemporalPrior:
     with ``c`` the confidence, ``s·γ_a`` the data term's weight (``value_scale · γ_a``, so the
     term follows the §3.4 schedule of the data term) and ``κ`` a global factor per image fitted
     to the current ``ρ`` (the median of ``Σ_c ρ / Σ_c T`` over the trusted pixels): the
-    target's scale does not matter, as ``ρ``'s is arbitrary. For the anchor, ``weight`` is
+    target's scale does not matter, as ``ρ``'s is arbitrary (with ``sigma > 0`` the target is
+    ``ρ`` times the smoothed ratio instead, see ``sigma``). For the anchor, ``weight`` is
     the ratio of the anchor to the data term (``weight = 4``: without the sparsity terms
     ``z = (ρ + 4 κT) / 5``); for the L1 form, ``z`` snaps to ``κ T`` wherever
     ``|ρ − κT| ≤ weight / 2`` (per channel, without the sparsity terms) and follows ``ρ``
@@ -218,12 +219,19 @@ class TemporalPrior:
             flow's forward–backward check passed), 0 where it is not (occluded, outside).
         weight: the term's weight relative to the data term, ``>= 0`` (0: off).
         norm: ``"l2"`` or ``"l1"``.
+        sigma: ``0``: the target is ``κ T`` as it is. ``> 0``: only its levels are kept,
+            smoothed over ``sigma`` px, and the detail is the current ``ρ``'s:
+            ``ρ · exp(G_σ ∗ log(Σ_c T / Σ_c ρ))`` on the trusted pixels
+            (:func:`~torchiid.stages.reflectance.temporal_term`). A warped target is blurred
+            and shifted a little at its edges (resampling, flow error); frame after frame,
+            that would accumulate.
     """
 
     target: torch.Tensor
     confidence: torch.Tensor
     weight: float = 4.0
     norm: str = "l2"
+    sigma: float = 0.0
 
     def __post_init__(self) -> None:
         if self.norm not in TEMPORAL_NORMS:
@@ -232,6 +240,8 @@ class TemporalPrior:
             )
         if not self.weight >= 0:
             raise ParameterError(f"temporal weight must be >= 0, got {self.weight}")
+        if not self.sigma >= 0:
+            raise ParameterError(f"temporal sigma must be >= 0, got {self.sigma}")
 
     def replace(self, **changes: object) -> TemporalPrior:
         """A copy with some fields changed."""

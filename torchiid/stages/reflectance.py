@@ -53,9 +53,11 @@ weights, the default) ``A`` keeps them and ``B`` helps (v7 0.0230, v4 0.0248, v4
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass
 
+import kornia
 import torch
 
 from torchiid.core.cache import InputKey, input_key
@@ -450,10 +452,14 @@ def temporal_term(
 ) -> tuple[float, TemporalL1Term | TemporalAnchorTerm] | None:
     """The temporal term ``"T"`` of a :class:`~torchiid.stages.config.TemporalPrior`.
 
-    The target is brought to the scale of ``ρ`` by ``κ``, the median over the trusted pixels
-    (confidence > 0.5, inside the mask, ``Σ_c T > 1e-3``) of ``Σ_c ρ / Σ_c T``, per image;
-    its weight is ``γ_T = weight · γ_a · value_scale`` (the data term's weight, so the term
-    keeps its ratio to the data term along the §3.4 schedule).
+    The target is brought to the scale of ``ρ`` on the trusted pixels (confidence > 0.5,
+    inside the mask, ``Σ_c T > 1e-3``, ``Σ_c ρ > 1e-3``): with ``prior.sigma == 0`` by one
+    factor per image, ``κ``, the median of ``Σ_c ρ / Σ_c T``; with ``prior.sigma > 0`` the
+    target becomes ``ρ · exp(G_σ ∗ log(Σ_c T / Σ_c ρ))`` (a normalised Gaussian average over
+    the trusted pixels): the other frame passes on its reflectance levels, smooth, and this
+    frame's ``ρ`` its detail and edges. Its weight is ``γ_T = weight · γ_a · value_scale``
+    (the data term's weight, so the term keeps its ratio to the data term along the §3.4
+    schedule).
 
     Returns:
         ``(γ_T, term)``, or ``None`` when the weight is 0 or no pixel is trusted.
@@ -466,12 +472,23 @@ def temporal_term(
         return None
     target = prior.target.to(rho.dtype).clamp_min(0)
     t_sum, r_sum = target.sum(1, keepdim=True), rho.sum(1, keepdim=True)
+    ok = (conf > 0.5) & (t_sum > 1e-3) & (r_sum > 1e-3)
     kappa = torch.ones(rho.shape[0], dtype=rho.dtype, device=rho.device)
     for i in range(rho.shape[0]):
-        ok = (conf[i] > 0.5) & (t_sum[i] > 1e-3)
-        if bool(ok.any()):
-            kappa[i] = (r_sum[i][ok] / t_sum[i][ok]).median()
+        if bool(ok[i].any()):
+            kappa[i] = (r_sum[i][ok[i]] / t_sum[i][ok[i]]).median()
     target = target * kappa.view(-1, 1, 1, 1)
+    if prior.sigma > 0 and bool(ok.any()):
+        w = ok.to(rho.dtype)
+        log_ratio = (t_sum * kappa.view(-1, 1, 1, 1)).clamp_min(1e-6) / r_sum.clamp_min(1e-6)
+        log_ratio = log_ratio.log_() * w
+        side = 2 * int(math.ceil(3 * prior.sigma)) + 1
+        side = min(side, 2 * (min(rho.shape[-2:]) // 2) - 1)
+        sig = (float(prior.sigma), float(prior.sigma))
+        num = kornia.filters.gaussian_blur2d(log_ratio, (side, side), sig, border_type="reflect")
+        den = kornia.filters.gaussian_blur2d(w, (side, side), sig, border_type="reflect")
+        smooth = torch.where(den > 1e-3, num / den.clamp_min(1e-6), torch.zeros_like(num))
+        target = torch.where(ok, rho * smooth.exp(), target)
     if prior.norm == "l1":
         return float(gamma), TemporalL1Term(target, conf)
     coefficient = 2.0 * gamma / (options.theta * options.value_scale)

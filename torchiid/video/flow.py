@@ -106,7 +106,8 @@ def warp(
     Args:
         image: ``(B, C, H, W)`` frame ``b`` (any values; a mask as float for ``"nearest"``).
         flow: ``(B, 2, H, W)`` flow from frame ``a`` to frame ``b``, on ``a``'s pixels.
-        mode: ``"bilinear"`` or ``"nearest"`` (for labels).
+        mode: ``"bilinear"``, ``"bicubic"`` (sharper; may overshoot) or ``"nearest"`` (for
+            labels).
 
     Returns:
         ``(warped (B, C, H, W), inside (B, 1, H, W) bool)``: ``inside`` is False where

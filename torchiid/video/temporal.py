@@ -65,6 +65,19 @@ class VideoOptions:
         temporal_weight: weight of the temporal term relative to Stage 2's data term
             (``None``: :data:`DEFAULT_TEMPORAL_WEIGHT` of the norm; 0: no temporal term).
         warm_start: start both stages of frame ``t`` from the warped previous reflectance.
+        init_median: side of the median filter applied to the warm start's log-shading
+            ``log(Σ I / Σ T)`` (1 or 0: none). The warped reflectance's edges are a little
+            blurred and shifted (resampling, flow error), so dividing the sharp new frame by it
+            leaves thin ridges along every edge; solved from there with capped iterations,
+            they would stay in the shading and accumulate frame after frame. A 3×3 median
+            removes ridges of a pixel or two and keeps the shading's own edges.
+        target_sigma: ``> 0``: the temporal target keeps only the warped reflectance's levels,
+            smoothed over this many working-resolution px, and the current ``ρ``'s detail
+            (:class:`~torchiid.stages.config.TemporalPrior` ``sigma``); 0 (default): the
+            warped reflectance as it is.
+        later_iterations: alternations of a warm-started frame: the last ``later_iterations``
+            of the §3.4 schedule (``decompose(..., schedule_start=)``); 0: all
+            ``params.iterations``.
         match_scale: one albedo scale for the sequence (else each frame's own quantile).
         reuse_features: warp the previous frame's Stage 0 features when the scene moved little.
         reuse_max_motion: 90th percentile of the flow's length (working-resolution px) up to
@@ -84,6 +97,9 @@ class VideoOptions:
     temporal_norm: str = "l2"
     temporal_weight: float | None = None
     warm_start: bool = True
+    later_iterations: int = 3
+    init_median: int = 3
+    target_sigma: float = 0.0
     match_scale: bool = True
     reuse_features: bool = True
     reuse_max_motion: float = 4.0
@@ -106,6 +122,12 @@ class VideoOptions:
             raise ParameterError(
                 f"flow method must be one of {', '.join(FLOW_METHODS)}, got {self.flow!r}"
             )
+        if self.init_median < 0 or self.init_median > 1 and self.init_median % 2 == 0:
+            raise ParameterError(f"init_median must be 0, 1 or odd, got {self.init_median}")
+        if not self.target_sigma >= 0:
+            raise ParameterError(f"target_sigma must be >= 0, got {self.target_sigma}")
+        if self.later_iterations < 0:
+            raise ParameterError(f"later_iterations must be >= 0, got {self.later_iterations}")
         if self.reuse_max_frames < 0 or not self.reuse_max_motion >= 0:
             raise ParameterError("reuse_max_frames and reuse_max_motion must be >= 0")
 
@@ -230,6 +252,14 @@ def _warp_features(feats: SemanticFeatures, flow: torch.Tensor) -> SemanticFeatu
         midlevel=None,
         times={},
     )
+
+
+def _median(x: torch.Tensor, size: int) -> torch.Tensor:
+    """``size × size`` median filter of ``(B, C, H, W)`` (replicate padding)."""
+    r = size // 2
+    padded = F.pad(x, (r, r, r, r), mode="replicate")
+    patches = padded.unfold(2, size, 1).unfold(3, size, 1)
+    return patches.reshape(*x.shape, size * size).median(dim=-1).values
 
 
 def _keep_albedo(
@@ -396,7 +426,11 @@ class VideoDecomposer:
                 init = self._warm_start(img_lo, target, trusted)
             if o.weight > 0:
                 temporal = TemporalPrior(
-                    target, trusted.to(img_lo.dtype), o.weight, o.temporal_norm
+                    target,
+                    trusted.to(img_lo.dtype),
+                    o.weight,
+                    o.temporal_norm,
+                    sigma=o.target_sigma,
                 )
             t0 = time.perf_counter()
             if (
@@ -409,6 +443,9 @@ class VideoDecomposer:
                 feats = _warp_features(prev.features, fw)
                 reused = True
             times["features"] = time.perf_counter() - t0
+        start = 1
+        if init is not None and 0 < o.later_iterations < p.iterations:
+            start = p.iterations - o.later_iterations + 1
         t0 = time.perf_counter()
         result = decompose(
             image,
@@ -419,6 +456,7 @@ class VideoDecomposer:
             temporal=temporal,
             return_stage1=self.return_stage1,
             return_features=o.reuse_features,
+            schedule_start=start,
         )
         t1 = time.perf_counter()
         if not reused:
@@ -479,6 +517,11 @@ class VideoDecomposer:
             s0 = _blur(img.mean(1, keepdim=True), max(min(img.shape[-2:]) / 16, 1.0))
             s0 = s0.clamp_min(floor)
         else:
-            s0 = _fill(s_est.clamp_min(floor).log(), known).exp()
+            log_s = _fill(s_est.clamp_min(floor).log(), known)
+            if self.options.init_median > 1:  # no ridges along the warp's shifted edges
+                log_s = _median(log_s, self.options.init_median)
+            s0 = log_s.exp()
+        if self.options.init_median > 1:
+            return img / s0, s0
         r0 = torch.where(known, target, img / s0)
         return r0, s0
