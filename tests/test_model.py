@@ -252,3 +252,33 @@ def test_intensity_aware_retinex_keeps_print_out_of_the_shading():
         )
     assert residue[0.0] < -1.0
     assert abs(residue[0.3]) < 0.05
+
+
+def _photo(h=96, w=128):
+    from skimage import data
+
+    from torchiid.core.colour import srgb_to_linear
+
+    x = torch.from_numpy(data.chelsea()[::3, ::3][:h, :w].copy()).permute(2, 0, 1).float() / 255
+    return srgb_to_linear(x)[None]
+
+
+def test_converged_preset_converges_and_warns_only_when_a_cap_is_hit():
+    import warnings
+
+    from torchiid.core.exceptions import ConvergenceWarning
+
+    p = Parameters.preset("converged").replace(iterations=2, patch_size=32, patch_stride=16)
+    image = _photo()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ConvergenceWarning)
+        out = decompose(image, p)  # no warning: every solve reached its tolerance
+    assert out.converged and len(out.solves) == 4
+    assert all(r.iterations < r.cap for r in out.solves)
+    with pytest.warns(ConvergenceWarning, match="safety caps"):
+        capped = decompose(image, p.replace(bregman_iter=2))
+    assert not capped.converged
+    # the default preset's caps are part of the method: reported, never warned about
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ConvergenceWarning)
+        assert not decompose(image, Parameters().replace(iterations=1)).converged

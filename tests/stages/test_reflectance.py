@@ -160,3 +160,21 @@ def test_channels_last_inputs_give_the_same_answer():
     )
     torch.testing.assert_close(r.reflectance, ref.reflectance, atol=1e-6, rtol=1e-6)
     assert r.solver.z.is_contiguous()
+
+
+def test_converged_preset_tolerance_puts_the_objective_near_its_minimum():
+    # the `converged` preset's Split-Bregman settings (theta 2.5, relative change 5e-5): Eq. 12's
+    # objective ends within 2% of a run five times as long
+    from torchiid.params import Parameters
+
+    s, rho, gpca = _scene()
+    problem = ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels)
+    opts = Parameters.preset("converged").reflectance_options()
+    opts = ReflectanceOptions(**{**opts.__dict__, "track_objective": True})
+    r = solve_reflectance(problem, W, opts)
+    assert bool(r.solver.converged.all())
+    n = int(r.solver.outer_iterations[0])
+    long = ReflectanceOptions(**{**opts.__dict__, "tol": 1e-12, "max_outer": 5 * n})
+    ref = float(solve_reflectance(problem, W, long).solver.objective[-1, 0])
+    end = float(r.solver.objective[-1, 0])
+    assert ref <= end <= 1.02 * ref

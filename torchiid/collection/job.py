@@ -27,13 +27,14 @@ import socket
 import sys
 import threading
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from torchiid.baselines.retinex import retinex_decomposition
-from torchiid.core.exceptions import ImageError, TorchiidError
+from torchiid.core.exceptions import ConvergenceWarning, ImageError, TorchiidError
 from torchiid.core.stats import image_quantile
 from torchiid.io import load_image, load_mask, save_image
 from torchiid.io.layers import OutputError, OutputSet, layer_file_names, write_layers
@@ -397,14 +398,19 @@ def _write_outputs(
                 tx.write(f"{stem}-iter{k}-{name}.png", lambda p, x=x: save_image(p, x, "srgb8"))
 
 
-def _capped_note(path: str, stem: str, solves: list) -> str | None:
+def _capped_note(path: str, stem: str, solves: list, converge: bool = False) -> str | None:
     capped = [r for r in solves if not r.converged]
     if not capped:
         return None
     worst = max(capped, key=lambda r: r.residual / r.tolerance)
+    why = (
+        "safety caps: raise cg_max_iter / bregman_iter"
+        if converge
+        else "the default preset caps them on purpose"
+    )
     return (
         f"{path}: {len(capped)} of {len(solves)} solver runs stopped at their iteration caps "
-        "before their tolerance (the default preset caps them on purpose; largest residual "
+        f"before their tolerance ({why}; largest residual "
         f"{worst.residual:.1g} against {worst.tolerance:g}); details in {stem}-info.json"
     )
 
@@ -538,7 +544,9 @@ def _finish(result, placed, settings, t0, decomposition, stem) -> None:
     result.status = "done"
     result.files = [Path(os.path.relpath(p, settings.out)).as_posix() for p in placed]
     result.seconds = time.perf_counter() - t0
-    result.note = _capped_note(result.path, stem, list(decomposition.solves))
+    result.note = _capped_note(
+        result.path, stem, list(decomposition.solves), settings.params.converge
+    )
 
 
 def _run_method(decompose_fn, batch, mbatch, settings, params, stem, show_progress):
@@ -558,14 +566,17 @@ def _run_method(decompose_fn, batch, mbatch, settings, params, stem, show_progre
             _bar.update(1)
 
     try:
-        return decompose_fn(
-            batch,
-            params,
-            mask=mbatch,
-            return_iterations=settings.save_iterations,
-            return_stage1=settings.save_stage1,
-            progress=progress,
-        )
+        with warnings.catch_warnings():
+            # a solve that hit its cap is reported in the image's one-line note and info.json
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            return decompose_fn(
+                batch,
+                params,
+                mask=mbatch,
+                return_iterations=settings.save_iterations,
+                return_stage1=settings.save_stage1,
+                progress=progress,
+            )
     finally:
         it_bar.close()
 

@@ -47,7 +47,11 @@ log = logging.getLogger("torchiid")
 
 def add_parameter_options(p: argparse.ArgumentParser) -> None:
     """The options that choose the method's parameters (shared by ``decompose`` and ``eval``)."""
-    p.add_argument("--preset", default="default", help="parameter preset: default or paper")
+    p.add_argument(
+        "--preset",
+        default="default",
+        help="parameter preset: default, paper or converged (every solve to tolerance)",
+    )
     p.add_argument("--params", type=Path, help="JSON file of parameters (over the preset)")
     p.add_argument("--variant", help="ablation variant v1..v7 or baseline1..baseline3")
     p.add_argument("--iterations", type=int, help="alternations k (overrides the preset)")

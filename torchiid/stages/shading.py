@@ -59,6 +59,10 @@ from torchiid.solvers.multigrid import AMGPreconditioner, GalerkinMultigrid
 from torchiid.solvers.pcg import pcg
 from torchiid.stages.config import ShadingOptions, ShadingProblem, ShadingWeights
 
+_MULTIGRID_BUDGET = 100
+"""PCG iterations a multigrid preconditioner gets before the solve goes on with Jacobi (it
+converges in 10–30 on photographs; far more means it stagnates)."""
+
 __all__ = [
     "AnchoredSystem",
     "anchored_system",
@@ -482,6 +486,8 @@ def solve_shading(
     t0 = time.perf_counter()
     reused = o.preconditioner != "jacobi" and not fresh
     budget = min(max_iter, 2 * cache.fresh_iterations + 5) if reused else max_iter
+    if o.preconditioner != "jacobi":
+        budget = min(budget, _MULTIGRID_BUDGET)
     res = pcg(matvec, rhs, x0=start, precond=precond, tol=o.tol, max_iter=budget, warn=False)
     if reused and not res.converged and res.iterations < max_iter:
         # the system drifted from the one the hierarchy was built for: rebuild it and go on
@@ -491,6 +497,15 @@ def solve_shading(
         times["preconditioner"] = time.perf_counter() - t1
         more = pcg(
             matvec, rhs, x0=res.x, precond=precond, tol=o.tol,
+            max_iter=min(max_iter - res.iterations, _MULTIGRID_BUDGET), warn=False,
+        )  # fmt: skip
+        res = dataclasses.replace(more, iterations=res.iterations + more.iterations)
+    if o.preconditioner != "jacobi" and not res.converged and res.iterations < max_iter:
+        # a multigrid that stagnates (float32 round-off on a very ill-conditioned system, e.g.
+        # the matting Laplacian of an exactly piecewise-constant base image) or breaks down:
+        # finish with the always-SPD Jacobi preconditioner from the current iterate
+        more = pcg(
+            matvec, rhs, x0=res.x, precond=anchored.jacobi, tol=o.tol,
             max_iter=max_iter - res.iterations, warn=False,
         )  # fmt: skip
         res = dataclasses.replace(more, iterations=res.iterations + more.iterations)
