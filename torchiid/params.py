@@ -504,11 +504,12 @@ PRESETS: dict[str, dict[str, Any]] = {
         "bregman_iter": 4,
         "bregman_cg_iter": 5,
     },
-    # every solve to its tolerance (README "Solving to tolerance"): the shading by multigrid PCG
-    # to a relative residual of 1e-4 (Jacobi takes over where the multigrid stagnates), Split-Bregman until z changes by less than 5e-5 per
-    # iteration (on MIT's panther: Eq. 12's objective within 1% of its minimum). theta is only
-    # the splitting penalty (the minimiser does not depend on it): 2.5 gets there in ~80
-    # iterations where the paper's 40 needs ~350. The caps are safety caps (a warning if hit).
+    # every solve to its tolerance (README "Solving to tolerance"): the shading by multigrid
+    # PCG to a relative residual of 1e-4 (Jacobi takes over where the multigrid stagnates),
+    # Split-Bregman until z changes by less than 5e-5 per iteration (on MIT's panther: Eq. 12's
+    # objective within 1% of its minimum). theta is only the splitting penalty (the minimiser
+    # does not depend on it): 2.5 gets there in ~80 iterations where the paper's 40 needs ~350.
+    # The caps are safety caps (a ConvergenceWarning if hit). Minutes per photo on a CPU.
     "converged": {
         "converge": True,
         "shading_preconditioner": "multigrid",

@@ -197,7 +197,7 @@ def test_a_stagnating_multigrid_hands_over_to_jacobi(monkeypatch):
     import torchiid.stages.shading as stage
 
     # a "multigrid" that does nothing useful (plain CG) cannot converge within its budget
-    monkeypatch.setattr(stage, "_multigrid", lambda *a, **k: (lambda r: r.clone()))
+    monkeypatch.setattr(stage, "_multigrid", lambda *a, **k: lambda r: r.clone())
     _, problem = _inputs(48, 48)
     opts = ShadingOptions(preconditioner="multigrid", tol=1e-6, max_iter=5000, warn=False)
     res = solve_shading(problem, W, opts)
