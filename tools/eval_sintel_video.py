@@ -84,7 +84,7 @@ def sintel(root: Path, names: list[str], params: Parameters) -> None:
 def synthetic(names: list[str], params: Parameters) -> None:
     print("| size | variant | WE true flow | WE estimated flow | mean LMSE | s |")
     print("| --- | --- | --- | --- | --- | --- |")
-    for h, w, n in ((72, 96, 5), (144, 192, 8)):
+    for h, w, n in ((72, 96, 5), (144, 192, 12)):
         seq = moving_mondrian(h, w, frames=n, velocity=(3, 1), light_step=0.1)
         frames = list(seq.images)
         flows = [seq.flow[t : t + 1] for t in range(n - 1)]
