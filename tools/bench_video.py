@@ -102,17 +102,19 @@ def main() -> None:
     print("| --- | --- | --- | --- | --- | --- |")
     details = {}
     for name, opt in variants.items():
-        firsts, laters, runs = [], [], []
+        firsts, laters, later_cpu, runs = [], [], [], []
         for _ in range(args.repeats):
-            secs, parts = time_video(frames, params, opt)
+            secs, cpus, parts = time_video(frames, params, opt)
             firsts.append(secs[0])
             laters.append(statistics.mean(secs[1:]))
+            later_cpu.append(statistics.mean(cpus[1:]))
             runs.append(parts)
         first, later = statistics.median(firsts), statistics.median(laters)
+        cpu = statistics.median(later_cpu)
         reused = sum(f.features_reused for f in runs[-1][1:])
         print(
             f"| {name} | {first:.3f} | {later:.3f} | {later / still_mean:.2f} | "
-            f"{reused}/{args.frames - 1} |"
+            f"{cpu / still_cpu_mean:.2f} | {reused}/{args.frames - 1} |"
         )
         keys = ("flow", "features", "decompose")
         details[name] = {
