@@ -130,4 +130,4 @@ def test_options_are_checked():
         VideoOptions(flow="magic")
     with pytest.raises(ParameterError):
         VideoOptions(init_median=2)
-    assert VideoOptions().weight == 4.0 and VideoOptions(temporal_norm="l1").weight == 0.2
+    assert VideoOptions().weight == 4.0 and VideoOptions(temporal_norm="l1").weight == 1.0

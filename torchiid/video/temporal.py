@@ -5,14 +5,15 @@ slightly different, and every frame's albedo scale (a quantile, see
 :func:`~torchiid.model.full_resolution_layers`) moves with what is in view. The video loop ties
 each frame ``t`` to the previous one, at the working resolution:
 
-1. **Flow.** Optical flow ``F_{t→t−1}`` and ``F_{t−1→t}`` (OpenCV DIS), and the pixels of
-   frame ``t`` whose motion passes the forward–backward check
-   (:func:`~torchiid.video.flow.occlusion_mask`) and that are inside both frames' masks: the
-   *trusted* pixels.
+1. **Flow.** Optical flow ``F_{t→t−1}`` and ``F_{t−1→t}`` (OpenCV DIS, on the frames at up to
+   ``flow_max_side`` px), and the pixels of frame ``t`` whose motion passes the
+   forward–backward check (:func:`~torchiid.video.flow.occlusion_mask`) and that are inside
+   both frames' masks: the *trusted* pixels.
 2. **Target.** The previous reflectance warped onto frame ``t``: ``T = warp(R_{t−1}, F_{t→t−1})``.
 3. **Warm start** of both stages (``decompose(..., init=)``): the shading PCG from
-   ``log(I / T)`` (gray; filled smoothly where the warp is not trusted) instead of the
-   coarse-to-fine cascade, Split-Bregman from ``T``.
+   ``log S0 = median(log(Σ I / Σ T))`` (3×3 median; continued smoothly where the warp is not
+   trusted) instead of the coarse-to-fine cascade, Split-Bregman from ``I / S0``; and only the
+   last ``later_iterations`` alternations of the schedule (``decompose(..., schedule_start=)``).
 4. **Temporal term** (``decompose(..., temporal=)``): Stage 2 pulls ``R`` toward ``T`` on the
    trusted pixels, an L2 anchor (default) or an L1 term inside Split-Bregman
    (:class:`~torchiid.stages.config.TemporalPrior`). The shading has no temporal term: it is
@@ -53,7 +54,7 @@ from torchiid.video.flow import FLOW_METHODS, estimate_flow, occlusion_mask, res
 __all__ = ["VideoOptions", "VideoFrame", "VideoDecomposer", "DEFAULT_TEMPORAL_WEIGHT"]
 
 #: default weight of the temporal term per norm (relative to Stage 2's data term)
-DEFAULT_TEMPORAL_WEIGHT = {"l2": 4.0, "l1": 0.2}
+DEFAULT_TEMPORAL_WEIGHT = {"l2": 4.0, "l1": 1.0}
 
 
 @dataclass(frozen=True)
@@ -89,9 +90,9 @@ class VideoOptions:
         flow_max_side: the flow is estimated on the frames brought to this longer side
             (0: full resolution), then resized to the working resolution; finer than the
             working resolution because the flow's error, not its cost, limits the temporal
-            term (on Sintel 1024 px flows have about half the end-point error of 512 px ones).
+            term (on Sintel 1024 px flows have about 0.6× the end-point error of 512 px ones).
         occlusion_alpha: relative tolerance of the forward–backward check.
-        occlusion_beta: absolute tolerance (px² at the working resolution).
+        occlusion_beta: absolute tolerance (px² at the flow's resolution).
     """
 
     temporal_norm: str = "l2"
