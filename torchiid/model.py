@@ -20,6 +20,7 @@ on the longer side); the shading is brought back to the input's resolution edge-
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -27,7 +28,7 @@ import torch
 from torch import nn
 
 from torchiid.core.check import as_mask, check_image
-from torchiid.core.exceptions import ParameterError, ShapeError
+from torchiid.core.exceptions import ConvergenceWarning, ParameterError, ShapeError
 from torchiid.core.stats import image_quantile, subgrid
 from torchiid.features.semantic import SemanticFeatures, semantic_features
 from torchiid.params import Parameters
@@ -412,7 +413,8 @@ def decompose(
     if temporal is not None:
         temporal_low = _temporal_prior(temporal, image, (h, w), msk)
 
-    shading_w, refl_w = params.shading_weights(), params.reflectance_weights()
+    shading_w = params.shading_weights(first)
+    refl_w = params.reflectance_weights(first)
     shading_opt, refl_opt = params.shading_options(), params.reflectance_options()
     s_prev = r_prev = None
     sigma = rho = refl = None
@@ -476,6 +478,16 @@ def decompose(
         shading_w, refl_w = shading_w.step(params.tau), refl_w.step(params.tau)
         if progress is not None:
             progress("iteration", k, params.iterations)
+
+    capped = [r for r in solves if not r.converged]
+    if params.converge and capped:
+        worst = max(capped, key=lambda r: r.residual / r.tolerance)
+        warnings.warn(
+            f"{len(capped)} of {len(solves)} solves stopped at their safety caps before their "
+            f"tolerance (worst: {worst}); raise cg_max_iter / bregman_iter",
+            ConvergenceWarning,
+            stacklevel=3,  # the caller of decompose (under torch's no_grad wrapper)
+        )
 
     # final layers at full resolution: S brought up edge-aware, R = I / S, R an albedo in [0, 1]
     guide_low = _log_luminance(img, params.dark_eps)
