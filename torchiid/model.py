@@ -316,8 +316,10 @@ def decompose(
         return_iterations: keep every alternation's ``σ, ρ, R, S`` (paper Fig. 5).
         return_stage1: also bring the last Stage 1 layers ``σ, ρ`` to full resolution
             (``False`` saves two full-resolution layers on large photos).
-        progress: called as ``progress(stage, k, total)`` with stage ``"features"`` and then
-            ``"iteration"`` after each alternation ``k = 1..total``.
+        progress: called as ``progress(stage, k, total)`` with stage ``"features"`` (``k = 0``)
+            and then ``"iteration"`` after each alternation run, ``k = 1..total``, where
+            ``total`` is the number of alternations run (``params.iterations -
+            schedule_start + 1``), so a bar over ``total`` ends full.
         init: a warm start ``(R0, S0)`` (e.g. a network's prediction) at the input's
             resolution or at the working resolution: reflectance ``(B, 3, H, W)`` and
             shading ``(B, 1, H, W)`` (or ``(B, 3, H, W)``, averaged to gray), positive. The
@@ -403,8 +405,9 @@ def decompose(
     if features is None:
         features = semantic_features(img, params)
     times = dict(features.times)
+    run_total = params.iterations - first + 1  # the alternations this call runs
     if progress is not None:
-        progress("features", 0, params.iterations)
+        progress("features", 0, run_total)
 
     s_init = z_init = None
     if init is not None:
@@ -477,7 +480,7 @@ def decompose(
         # §3.4: strengthen mid-level, global and data terms, weaken local ones
         shading_w, refl_w = shading_w.step(params.tau), refl_w.step(params.tau)
         if progress is not None:
-            progress("iteration", k, params.iterations)
+            progress("iteration", k - first + 1, run_total)
 
     capped = [r for r in solves if not r.converged]
     if params.converge and capped:

@@ -74,6 +74,16 @@ def test_existing_outputs_are_kept_and_the_chain_resumes(frames, tmp_path, capsy
     assert main(["decompose-video", str(first_two), "-o", str(out), *FAST]) == 0
     before = snapshot(out)
     capsys.readouterr()
+    # other settings would be mixed into the chain: stopped before any frame, in one line
+    for changed, key in [
+        (["--iterations", "2", "--no-progress"], "params.iterations 1 -> 2"),
+        ([*FAST, "--temporal-weight", "2"], "video.temporal_weight 4.0 -> 2.0"),
+        ([*FAST, "--flow", "farneback"], "video.flow 'dis' -> 'farneback'"),
+    ]:
+        assert main(["decompose-video", str(frames), "-o", str(out), *changed]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "video-params.json" in err[0] and key in err[0], err
+        assert "--overwrite" in err[0] and snapshot(out) == before
     # the whole sequence into the same folder: frames 1-2 exist (reported), 3-4 are new
     assert main(["decompose-video", str(frames), "-o", str(out), *FAST]) == 1
     err = capsys.readouterr().err
@@ -172,11 +182,44 @@ def test_eval_video_with_estimated_and_given_flow(frames, seq, tmp_path, capsys)
     data = json.loads((summary / "video-summary.json").read_text())
     assert len(data["pairs"]) == 3 and data["mean"]["given"] is not None
     assert all(p["given_valid"] < 1 for p in data["pairs"])  # the occlusion maps were read
-    # the reflectance flickers less than the input frames themselves
-    assert data["mean"]["given"] < data["mean"]["input_estimated"]
+    assert data["pairs"][1]["occlusion_file"] == str(flow / "occlusions_0002.png")
+    # the reflectance flickers less than the input frames themselves (same flow, same pixels)
+    assert data["mean"]["estimated"] < data["mean"]["input_estimated"]
+    assert data["mean"]["given"] < data["mean"]["input_given"]
     assert main([*args, "--no-progress"]) == 2  # the summary exists
     assert main(["eval", "video", str(frames), "--no-progress"]) == 2
     assert main(["eval", "mit", str(frames), str(out)]) == 2
+
+
+def test_eval_video_occlusions_folder_in_sintel_layout(frames, seq, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["decompose-video", str(frames), "-o", str(out), *FAST]) == 0
+    # MPI Sintel: flow/<scene>/frame_0001.flo, occlusions/<scene>/frame_0001.png (1 -> 2)
+    flow, occl = tmp_path / "flow" / "scene", tmp_path / "occlusions" / "scene"
+    flow.mkdir(parents=True)
+    occl.mkdir(parents=True)
+    for t in range(3):
+        write_flo(flow / f"frame_{t + 1:04d}.flo", seq.flow[t])
+    occ = (~seq.valid[1, 0]).numpy().astype(np.uint8) * 255
+    cv2.imwrite(str(occl / "frame_0002.png"), occ)  # matched by number: pair 2 -> 3 only
+    summary = tmp_path / "eval"
+    args = ["eval", "video", str(frames), str(out), "--flow", str(flow), "--no-progress"]
+    assert main([*args, "--occlusions", str(occl), "-o", str(summary)]) == 0
+    data = json.loads((summary / "video-summary.json").read_text())
+    files = [p["occlusion_file"] for p in data["pairs"]]
+    assert files == [None, str(occl / "frame_0002.png"), None]
+    assert data["pairs"][1]["given_valid"] == pytest.approx(float(seq.valid[1].float().mean()))
+    capsys.readouterr()
+    assert main(["eval", "video", str(frames), str(out), "--occlusions", str(occl)]) == 2
+    assert "give --flow" in capsys.readouterr().err
+    (occl / "frame_2.png").write_bytes((occl / "frame_0002.png").read_bytes())
+    assert main([*args, "--occlusions", str(occl)]) == 2
+    assert "two occlusion maps for frame 2" in capsys.readouterr().err
+    # the estimated columns can use another estimator than the method's DIS
+    assert main([*args, "--eval-flow", "farneback", "-o", str(tmp_path / "fb")]) == 0
+    assert json.loads((tmp_path / "fb" / "video-summary.json").read_text())["eval_flow"] == (
+        "farneback"
+    )
 
 
 def test_eval_video_reports_missing_results(frames, tmp_path, capsys):

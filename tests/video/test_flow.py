@@ -1,4 +1,5 @@
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -72,6 +73,26 @@ def test_flo_round_trip_and_bad_files(tmp_path):
         read_flo(tmp_path / "short.flo")
     with pytest.raises(ImageError, match="missing.flo"):
         read_flo(tmp_path / "missing.flo")
+
+
+SINTEL = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "sintel-clean"
+SINTEL_FLO = SINTEL / "alley_1" / "gt" / "frame_0002.flo"
+
+
+@pytest.mark.skipif(not SINTEL_FLO.is_file(), reason="shared Sintel sample not present")
+def test_read_flo_of_a_real_sintel_file():
+    # a file written by Sintel's own tools, not by write_flo: 1024x436, the PIEH tag
+    raw = SINTEL_FLO.read_bytes()
+    assert raw[:4] == b"PIEH" and len(raw) == 12 + 8 * 1024 * 436
+    f = read_flo(SINTEL_FLO)
+    assert f.shape == (1, 2, 436, 1024) and f.dtype == torch.float32
+    assert bool(torch.isfinite(f).all())
+    # pixels, plausible for a 1024 px frame, and alley_1 moves: not an all-zero field
+    assert 0.1 < float(f.abs().median()) < 1024
+    # the frames it belongs to have its size
+    from torchiid.io import load_image
+
+    assert load_image(SINTEL / "alley_1" / "frame_0002.png").image.shape[-2:] == (436, 1024)
 
 
 def test_warping_error_of_the_true_layers_is_zero():

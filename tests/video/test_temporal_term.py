@@ -97,8 +97,11 @@ def test_schedule_start_runs_the_last_alternations():
     p = FAST.replace(iterations=3)
     full = decompose(img, p)
     assert torch.equal(decompose(img, p, schedule_start=1).reflectance, full.reflectance)
-    last = decompose(img, p, schedule_start=3)
+    calls = []
+    last = decompose(img, p, schedule_start=3, progress=lambda *a: calls.append(a))
     assert [r.alternation for r in last.solves] == [3, 3]
+    # progress counts the alternations run, so a bar over its total ends full
+    assert calls == [("features", 0, 1), ("iteration", 1, 1)]
     with pytest.raises(ParameterError, match="schedule_start"):
         decompose(img, p, schedule_start=4)
 

@@ -131,7 +131,23 @@ def add_eval_parser(subparsers: Any) -> argparse.ArgumentParser:
         type=Path,
         metavar="DIR",
         help="(video) ground-truth flows: <frame stem>.flo (Middlebury) from each frame to the "
-        "next, occlusions in <stem>-occlusions.png or Sintel's occlusions_NNNN.png",
+        "next; occlusions from --occlusions, else <stem>-occlusions.png or occlusions_NNNN.png "
+        "in DIR (the shared sintel-clean sample's layout), else the forward-backward check",
+    )
+    p.add_argument(
+        "--occlusions",
+        type=Path,
+        metavar="DIR",
+        help="(video, with --flow) occlusion maps of the ground-truth flows: PNGs, white = "
+        "occluded, matched to the flow's first frame by the number ending the file name "
+        "(MPI Sintel's occlusions/<scene>/frame_0002.png: frame 2's pixels hidden in frame 3)",
+    )
+    p.add_argument(
+        "--eval-flow",
+        choices=["dis", "farneback"],
+        default="dis",
+        help="(video) optical flow estimated on the frames for the 'estimated' columns "
+        "(default dis; farneback scores a DIS-based result with a flow it did not follow)",
     )
     p.add_argument(
         "--space",

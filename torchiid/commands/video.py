@@ -15,7 +15,7 @@ from torchiid.commands.decompose import add_parameter_options, params_from_args
 from torchiid.core.device import resolve_device
 from torchiid.core.exceptions import ImageError, ParameterError, TorchiidError
 from torchiid.eval.results import load_layer
-from torchiid.eval.video import evaluate_video
+from torchiid.eval.video import evaluate_video, frame_number, occlusion_index
 from torchiid.io import load_image, load_mask
 from torchiid.io.layers import OutputError, OutputSet, check_output_folder
 from torchiid.params import Parameters
@@ -44,7 +44,9 @@ shading_white hold for the whole sequence (set by its first frame).
 
 existing outputs are kept unless --overwrite: a frame whose files exist is reported and
 skipped (status 1), and its reflectance, read back from frame-*-reflectance-linear16.png,
-continues the temporal chain, so an interrupted run can be resumed with the same command.
+continues the temporal chain, so an interrupted run can be resumed with the same command. A
+rerun whose parameters or video options differ from the folder's video-params.json stops
+before any frame (status 2): pass --overwrite or choose another output folder.
 
 exit status: 0 every frame written, 1 some frames failed (each reported in one line), 2 usage
 or set-up error (nothing decomposed), 130 interrupted."""
@@ -171,6 +173,45 @@ def _params_json(params: Parameters, options: VideoOptions) -> str:
     return json.dumps(data, indent=2) + "\n"
 
 
+def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(data, dict):
+        return {prefix: data}
+    flat: dict[str, Any] = {}
+    for key, value in data.items():
+        flat.update(_flatten(value, f"{prefix}.{key}" if prefix else str(key)))
+    return flat
+
+
+def _check_same_settings(out: Path, params: Parameters, options: VideoOptions) -> None:
+    """Refuse to continue a folder decomposed with other settings (its ``video-params.json``).
+
+    Resuming chains the new frames to the frames already written; with other parameters or
+    video options the sequence would silently mix two settings.
+
+    Raises:
+        TorchiidError: ``video-params.json`` differs or cannot be read.
+    """
+    path = out / PARAMS_NAME
+    if not os.path.lexists(path):
+        return
+    hint = "pass --overwrite to replace the outputs or choose another output folder"
+    try:
+        old = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise TorchiidError(
+            f"{path}: cannot read the earlier run's settings ({exc}); {hint}"
+        ) from None
+    new = json.loads(_params_json(params, options))
+    a, b = _flatten(old), _flatten(new)
+    changed = sorted(k for k in a.keys() | b.keys() if a.get(k, None) != b.get(k, None))
+    if changed:
+        shown = ", ".join(f"{k} {a.get(k)!r} -> {b.get(k)!r}" for k in changed[:3])
+        more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
+        raise TorchiidError(
+            f"{path}: the outputs there were made with other settings ({shown}{more}); {hint}"
+        )
+
+
 def _resume(video: VideoDecomposer, out: Path, stem: str, image, mask) -> bool:
     """Continue the chain from a frame written earlier; False when its files cannot be read."""
     try:
@@ -196,6 +237,8 @@ def run_decompose_video(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     out: Path = args.output
     check_output_folder(out)
+    if not args.overwrite:
+        _check_same_settings(out, params, options)
     source = open_frames(args.input, linear=args.linear)
     masks = None
     if args.masks is not None:
@@ -293,7 +336,7 @@ def run_decompose_video(args: argparse.Namespace) -> int:
                     tx.commit()
                 written, tx = written + 1, None
                 if not params_written:  # with the first frame: a run that fails writes nothing
-                    params_written = _write_params(out, params, options, args.overwrite, say)
+                    params_written = _write_params(out, params, options, args.overwrite)
                 if preview is not None:
                     preview.add(image, refl, shading / white)
                 done = f"{where} -> {out}/{stem}-* ({seconds:.1f} s)"
@@ -341,13 +384,13 @@ def run_decompose_video(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_params(
-    out: Path, params: Parameters, options: VideoOptions, overwrite: bool, say
-) -> bool:
-    """Write ``video-params.json``; an existing one is kept (and said) without ``overwrite``."""
+def _write_params(out: Path, params: Parameters, options: VideoOptions, overwrite: bool) -> bool:
+    """Write ``video-params.json``; an existing one is kept without ``overwrite``.
+
+    (It holds the same settings: :func:`_check_same_settings` stopped the run otherwise.)
+    """
     target = out / PARAMS_NAME
     if os.path.lexists(target) and not overwrite:
-        say(f"torchiid: note: {target} exists and was kept; pass --overwrite to replace it")
         return True
     with OutputSet(out, overwrite=True, label="video-params") as tx:
         text = _params_json(params, options)
@@ -388,7 +431,7 @@ def _load_reflectance(results: Path, index: int, name: str):
 
 
 def run_eval_video(args: argparse.Namespace) -> int:
-    """``torchiid eval video FRAMES RESULTS [--flow DIR]``: warping errors; the exit status."""
+    """``torchiid eval video FRAMES RESULTS [--flow DIR [--occlusions DIR]]``: exit status."""
     from tqdm import tqdm
 
     if args.results_dir is None:
@@ -401,6 +444,13 @@ def run_eval_video(args: argparse.Namespace) -> int:
         raise TorchiidError(f"{results}: no such results folder")
     if args.flow is not None and not args.flow.is_dir():
         raise TorchiidError(f"{args.flow}: no such flow folder")
+    occlusions = None
+    if args.occlusions is not None:
+        if args.flow is None:
+            raise ParameterError("--occlusions marks the pixels of the --flow files: give --flow")
+        if not args.occlusions.is_dir():
+            raise TorchiidError(f"{args.occlusions}: no such occlusions folder")
+        occlusions = occlusion_index(args.occlusions)  # a bad folder stops before any pair
     summary_path = None
     if args.output is not None:
         check_output_folder(args.output)
@@ -424,7 +474,11 @@ def run_eval_video(args: argparse.Namespace) -> int:
                         f"{refl.shape[-1]}x{refl.shape[-2]}, the frame "
                         f"{item.image.shape[-1]}x{item.image.shape[-2]}"
                     )
-                current = (item.image, refl, item.name)
+                # a folder's frame is numbered by its file name, a video's by its position
+                number = item.index + 1
+                if source.kind == "folder":
+                    number = frame_number(item.name, number)
+                current = (item.image, refl, item.name, number)
             except Exception as exc:  # noqa: BLE001 - the other pairs go on
                 failures += 1
                 bar.write(f"torchiid: error: {_error_message(item.name, exc)}", file=sys.stderr)
@@ -438,6 +492,9 @@ def run_eval_video(args: argparse.Namespace) -> int:
                         [prev[2], current[2]],
                         flow_dir=args.flow,
                         space=args.space,
+                        method=args.eval_flow,
+                        occlusions=occlusions,
+                        numbers=[prev[3], current[3]],
                     )
                 except TorchiidError as exc:
                     failures += 1
@@ -449,7 +506,7 @@ def run_eval_video(args: argparse.Namespace) -> int:
     if not rows:
         print("torchiid: error: no pair of consecutive frames could be scored", file=sys.stderr)
         return 1 if failures else 2
-    print(_video_table(rows, args.space))
+    print(_video_table(rows, args.space, args.eval_flow))
     if summary_path is not None:
         _write_summary(summary_path, rows, args)
         print(f"wrote {summary_path}")
@@ -464,28 +521,34 @@ def _mean(values) -> float | None:
     return sum(vals) / len(vals) if vals else None
 
 
-def _video_table(rows, space: str) -> str:
+def _video_table(rows, space: str, eval_flow: str = "dis") -> str:
     def cell(v, digits=5) -> str:
         return f"{'-':>12}" if v is None or v != v else f"{v:>12.{digits}f}"
 
     width = max(len("mean"), *(len(f"{r.first} -> {r.second}") for r in rows))
     head = (
         f"{'pair':<{width}}  {'WE (est.)':>12}  {'input WE':>12}  {'valid':>12}  "
-        f"{'WE (given)':>12}  {'valid given':>12}"
+        f"{'WE (given)':>12}  {'input given':>12}  {'valid given':>12}"
     )
-    lines = [f"warping error of the reflectance ({space} values in [0, 1])", head, "-" * len(head)]
+    lines = [
+        f"warping error of the reflectance ({space} values in [0, 1]; est.: {eval_flow} flow "
+        "estimated on the frames, given: the --flow files)",
+        head,
+        "-" * len(head),
+    ]
     for r in rows:
         lines.append(
             f"{r.first + ' -> ' + r.second:<{width}}  {cell(r.estimated)}  "
             f"{cell(r.input_estimated)}  {cell(r.estimated_valid, 3)}  {cell(r.given)}  "
-            f"{cell(r.given_valid, 3)}"
+            f"{cell(r.input_given)}  {cell(r.given_valid, 3)}"
         )
     lines.append("-" * len(head))
     lines.append(
         f"{'mean':<{width}}  {cell(_mean(r.estimated for r in rows))}  "
         f"{cell(_mean(r.input_estimated for r in rows))}  "
         f"{cell(_mean(r.estimated_valid for r in rows), 3)}  "
-        f"{cell(_mean(r.given for r in rows))}  {cell(_mean(r.given_valid for r in rows), 3)}"
+        f"{cell(_mean(r.given for r in rows))}  {cell(_mean(r.input_given for r in rows))}  "
+        f"{cell(_mean(r.given_valid for r in rows), 3)}"
     )
     return "\n".join(lines)
 
@@ -495,11 +558,14 @@ def _write_summary(path: Path, rows, args: argparse.Namespace) -> None:
         "frames": str(args.dir),
         "results": str(args.results_dir),
         "flow": None if args.flow is None else str(args.flow),
+        "occlusions": None if args.occlusions is None else str(args.occlusions),
+        "eval_flow": args.eval_flow,
         "space": args.space,
         "mean": {
             "estimated": _mean(r.estimated for r in rows),
             "input_estimated": _mean(r.input_estimated for r in rows),
             "given": _mean(r.given for r in rows),
+            "input_given": _mean(r.input_given for r in rows),
         },
         "pairs": [r.__dict__ for r in rows],
     }

@@ -14,11 +14,19 @@ albedo instead). ``M`` is the forward–backward check of the flows
 (:func:`~torchiid.video.flow.occlusion_mask`, α = 0.01, β = 0.5 as in Lai et al.) or a given
 occlusion map.
 
-Flows come from the **input frames** (OpenCV DIS, both directions), or from given
-ground-truth files: Middlebury ``.flo`` (:func:`read_flo`), named after frame ``t − 1`` as in
-MPI Sintel (``frame_0002.flo`` is the flow from frame 2 to frame 3), with the occluded pixels of
-frame ``t − 1`` in ``occlusions_0002.png`` (white) when that file exists (else the given flow
-is checked against the estimated backward flow).
+Flows come from the **input frames** (OpenCV DIS, both directions; or Farnebäck), or from
+given ground-truth files: Middlebury ``.flo`` (:func:`read_flo`), named after frame ``t − 1``
+as in MPI Sintel (``flow/<scene>/frame_0002.flo`` is the flow from frame 2 to frame 3). The
+occluded pixels of frame ``t − 1`` (white) come from a folder of PNG maps matched by frame
+number (:func:`occlusion_index`; MPI Sintel's ``occlusions/<scene>/frame_0002.png``), else
+from ``<stem>-occlusions.png`` or ``occlusions_0002.png`` next to the ``.flo`` file
+(:func:`occlusion_file`; the latter is the layout of the shared ``sintel-clean`` sample, not
+Sintel's own), else the given flow is checked against the estimated backward flow.
+
+A flow estimated on the frames is not independent of a video method that itself follows
+estimated flow: when both use the same estimator the warping error partly measures agreement
+with that flow. Ground-truth flow, or another estimator (``method="farneback"`` against a
+method that used DIS), is the fair comparison.
 """
 
 from __future__ import annotations
@@ -45,6 +53,8 @@ __all__ = [
     "WarpingError",
     "warping_error",
     "occlusion_file",
+    "occlusion_index",
+    "frame_number",
     "read_occlusions",
     "VideoPair",
     "evaluate_video",
@@ -240,11 +250,53 @@ def _frame_digits(stem: str) -> str | None:
     return digits or None
 
 
-def occlusion_file(flow_dir: Path, stem: str) -> Path | None:
-    """The occlusion map of frame ``stem`` in ``flow_dir``, or ``None``.
+def frame_number(name: str, position: int) -> int:
+    """The number of a frame file: the digits ending its stem, else ``position``.
 
-    Looked for as ``<stem>-occlusions.png``, then as Sintel's ``occlusions_<NNNN>.png``
-    (``NNNN``: the digits ending the stem).
+    ``frame_0002.png``: 2; ``position`` is the frame's 1-based place in the sequence.
+    """
+    digits = _frame_digits(Path(name).stem)
+    return int(digits) if digits is not None else position
+
+
+def occlusion_index(folder: str | os.PathLike) -> dict[int, Path]:
+    """The occlusion maps of a folder by frame number.
+
+    Every ``.png`` whose stem ends in digits (``frame_0002.png``, ``occlusions_0002.png``:
+    frame 2) is the map of frame ``t − 1``'s pixels occluded in frame ``t`` (white). Other
+    files are ignored.
+
+    Raises:
+        ImageError: the folder cannot be listed, holds no such map, or two maps for a frame.
+    """
+    folder = Path(folder)
+    try:
+        files = sorted(q for q in folder.iterdir() if q.suffix.lower() == ".png" and q.is_file())
+    except OSError as exc:
+        raise ImageError(f"{folder}: cannot list ({exc.strerror or exc})") from None
+    index: dict[int, Path] = {}
+    for f in files:
+        digits = _frame_digits(f.stem)
+        if digits is None:
+            continue
+        n = int(digits)
+        if n in index:
+            raise ImageError(
+                f"{folder}: two occlusion maps for frame {n}: {index[n].name}, {f.name}"
+            )
+        index[n] = f
+    if not index:
+        raise ImageError(f"{folder}: holds no occlusion maps (.png files named ..._NNNN.png)")
+    return index
+
+
+def occlusion_file(flow_dir: Path, stem: str) -> Path | None:
+    """The occlusion map of frame ``stem`` next to its ``.flo`` file in ``flow_dir``, or ``None``.
+
+    Looked for as ``<stem>-occlusions.png``, then as ``occlusions_<NNNN>.png`` (``NNNN``: the
+    digits ending the stem; the layout of the shared ``sintel-clean`` sample, ``gt/``). MPI
+    Sintel itself keeps them in a folder of their own, ``occlusions/<scene>/frame_NNNN.png``:
+    see :func:`occlusion_index`.
     """
     candidates = [flow_dir / f"{stem}-occlusions.png"]
     digits = _frame_digits(stem)
@@ -270,6 +322,9 @@ class VideoPair:
         input_estimated: warping error of the input frames themselves (estimated flow), the
             reference for "no flicker beyond the video's own".
         flow_file: the ``.flo`` file used, or ``None``.
+        input_given: warping error of the input frames with the given flow (``None``).
+        occlusion_file: the occlusion map used with the given flow, or ``None`` (none given:
+            the forward–backward check).
     """
 
     first: str
@@ -280,6 +335,8 @@ class VideoPair:
     given_valid: float | None
     input_estimated: float
     flow_file: str | None
+    input_given: float | None = None
+    occlusion_file: str | None = None
 
 
 def evaluate_video(
@@ -290,6 +347,8 @@ def evaluate_video(
     flow_dir: str | os.PathLike | None = None,
     space: str = "srgb",
     method: str = "dis",
+    occlusions: str | os.PathLike | dict[int, Path] | None = None,
+    numbers: Sequence[int] | None = None,
 ) -> list[VideoPair]:
     """Warping errors of every consecutive pair (module notes), estimated and given flows.
 
@@ -300,7 +359,13 @@ def evaluate_video(
         flow_dir: folder of ground-truth flows ``<stem of frame t − 1>.flo`` (the flow from
             frame ``t − 1`` to ``t``) and occlusion maps (:func:`occlusion_file`), or ``None``.
         space: ``"srgb"`` (default) or ``"linear"``.
-        method: the flow estimator.
+        method: the flow estimator (``"dis"`` or ``"farneback"``).
+        occlusions: a folder of occlusion maps matched to frame ``t − 1`` by frame number
+            (:func:`occlusion_index`, or its result), used with the given flows instead of
+            the maps of ``flow_dir``; a pair without a map there gets the forward–backward
+            check.
+        numbers: the frames' numbers for ``occlusions`` (default: :func:`frame_number` of
+            each name and its 1-based position).
 
     Returns:
         One :class:`VideoPair` per pair.
@@ -312,6 +377,10 @@ def evaluate_video(
     refl = [x[None] if x.dim() == 3 else x for x in reflectances]
     if not len(frames) == len(refl) == len(names):
         raise ShapeError(f"{len(frames)} frames, {len(refl)} reflectances, {len(names)} names")
+    if numbers is None:
+        numbers = [frame_number(n, i + 1) for i, n in enumerate(names)]
+    if occlusions is not None and not isinstance(occlusions, dict):
+        occlusions = occlusion_index(occlusions)
     pairs = []
     for t in range(1, len(frames)):
         a, b = frames[t - 1], frames[t]
@@ -325,7 +394,7 @@ def evaluate_video(
         valid = occlusion_mask(fw, bw)
         est = pair_warping_error(refl[t - 1], refl[t], fw, valid, space)
         inp = pair_warping_error(a, b, fw, valid, space)
-        given = given_valid = flow_file = None
+        given = given_valid = flow_file = input_given = occ = None
         if flow_dir is not None:
             stem = Path(names[t - 1]).stem
             path = Path(flow_dir) / f"{stem}.flo"
@@ -336,12 +405,16 @@ def evaluate_video(
                     raise ImageError(
                         f"{path}: flow is {gt.shape[-1]}x{gt.shape[-2]} but the frames are {w}x{h}"
                     )
-                occ = occlusion_file(Path(flow_dir), stem)
+                if occlusions is not None:
+                    occ = occlusions.get(numbers[t - 1])
+                else:
+                    occ = occlusion_file(Path(flow_dir), stem)
                 if occ is not None:
                     gvalid = ~read_occlusions(occ, tuple(a.shape[-2:]))
                 else:
                     gvalid = occlusion_mask(gt, bw)
                 given = pair_warping_error(refl[t - 1], refl[t], gt, gvalid, space)
+                input_given = pair_warping_error(a, b, gt, gvalid, space)
                 given_valid = float(gvalid.float().mean())
                 flow_file = str(path)
         pairs.append(
@@ -354,6 +427,8 @@ def evaluate_video(
                 given_valid,
                 inp,
                 flow_file,
+                input_given,
+                None if occ is None else str(occ),
             )
         )
     return pairs

@@ -20,9 +20,10 @@ each frame ``t`` to the previous one, at the working resolution:
    free to follow moving lights (it is ``I / R``).
 5. **Stage 0 reuse.** When the scene moved little (the 90th percentile of the flow's length is
    at most ``reuse_max_motion`` working-resolution px and at least ``reuse_min_trusted`` of the
-   pixels are trusted), the previous frame's Stage 0 features are warped along the flow
-   (proposal features and similarities bilinearly, segments by nearest neighbour; the CNN patch
-   descriptors kept) instead of recomputed, for at most ``reuse_max_frames`` frames in a row.
+   pixels inside both frames' masks, all pixels without masks, are trusted), the previous
+   frame's Stage 0 features are warped along the flow (proposal features and similarities
+   bilinearly, segments by nearest neighbour; the CNN patch descriptors kept) instead of
+   recomputed, for at most ``reuse_max_frames`` frames in a row.
 6. **One scale for the sequence.** The first frame's albedo scale holds for the whole
    sequence: every later frame's ``(R, S)`` is rescaled by the median of ``Σ_c T / Σ_c R`` over
    the trusted pixels, so the reflectance does not flicker with the per-frame quantile; pixels
@@ -83,7 +84,8 @@ class VideoOptions:
         reuse_features: warp the previous frame's Stage 0 features when the scene moved little.
         reuse_max_motion: 90th percentile of the flow's length (working-resolution px) up to
             which features are reused.
-        reuse_min_trusted: share of trusted pixels needed to reuse features.
+        reuse_min_trusted: share of trusted pixels (of those inside both frames' masks)
+            needed to reuse features.
         reuse_max_frames: features are recomputed at least every ``reuse_max_frames + 1``
             frames.
         flow: ``"dis"`` or ``"farneback"`` (:func:`~torchiid.video.flow.estimate_flow`).
@@ -163,7 +165,9 @@ class VideoFrame:
         decomposition: the :class:`~torchiid.model.Decomposition`, with ``reflectance``,
             ``shading`` and ``shading_white`` in the sequence's convention (module notes, 6).
         linked: whether the frame was tied to its predecessor (False: a still decomposition).
-        trusted: share of the working-resolution pixels whose warp was trusted (0 unlinked).
+        trusted: share of the working-resolution pixels whose warp was trusted, among the
+            pixels inside both frames' masks (the mask of this frame and the previous frame's
+            mask warped onto it; all pixels without masks); 0 unlinked.
         motion: 90th percentile of the flow's length, working-resolution px (0 unlinked).
         features_reused: Stage 0 came from the previous frame, warped.
         scale: the factor applied to the reflectance to keep the sequence's scale (1: none).
@@ -414,12 +418,17 @@ class VideoDecomposer:
                 fw = resize_flow(fw, size)
                 trusted = downsample(trusted.float(), size) > 0.5
             fw, trusted = fw.to(img_lo.device), trusted.to(img_lo.device)
+            region = torch.ones_like(trusted)  # inside both frames' masks
             if msk_lo is not None:
-                trusted &= msk_lo
+                region &= msk_lo
             if prev.mask is not None:
-                trusted &= warp(prev.mask.to(img_lo.dtype), fw, mode="nearest")[0] > 0.5
+                region &= warp(prev.mask.to(img_lo.dtype), fw, mode="nearest")[0] > 0.5
+            trusted &= region
             target = warp(prev.reflectance, fw)[0].clamp_min(0)
-            trusted_share = float(trusted.float().mean())
+            # a share of the masked area, not of the frame: else a mask covering less than
+            # reuse_min_trusted of the frame would never let Stage 0 be reused
+            area = int(region.sum())
+            trusted_share = float(trusted.sum()) / area if area else 0.0
             length = fw.square().sum(1).sqrt().flatten()
             motion = float(torch.quantile(length[:: max(1, length.numel() // 65536)], 0.9))
             times["flow"] = time.perf_counter() - t0
