@@ -17,8 +17,11 @@ import pytest
 from conftest import FAST
 
 from torchiid.cli import main
+from torchiid.collection import RunInterrupted, RunSettings, run_collection
 from torchiid.collection.manifest import read_records
+from torchiid.io.inputs import InputItem
 from torchiid.io.layers import layer_file_names
+from torchiid.params import Parameters
 
 distributed = pytest.importorskip("distributed")
 
@@ -104,3 +107,53 @@ def test_a_dask_task_raises_only_what_a_retry_may_cure(library, tmp_path):
     with pytest.raises(ImageTaskError, match=r"cover.png: RuntimeError: out of luck"):
         dask_task(good, settings, phash, _buggy_decompose)  # Dask retries it (retries=)
     assert not (tmp_path / "out").exists()
+
+
+def _interrupt_when_held(marker, go=None):
+    """Ctrl-C (SIGINT to this process) once the held task runs; then maybe release it."""
+
+    def run():
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not marker.exists():
+            time.sleep(0.05)
+        os.kill(os.getpid(), signal.SIGINT)
+        if go is not None:
+            time.sleep(0.3)
+            go.touch()
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread
+
+
+def test_ctrl_c_waits_for_the_running_tasks_and_names_those_left(
+    library, tmp_path, cluster, monkeypatch, capsys, caplog
+):
+    c, hold = cluster
+    marker, go = hold / "IMG_0002.pid", hold / "IMG_0002.go"
+    src = library / "2020" / "trip" / "IMG_0002.png"
+    out = tmp_path / "out"
+    settings = RunSettings(out=out, params=Parameters(), method="retinex")
+    # the task ends within the wait: it is recorded
+    waiter = _interrupt_when_held(marker, go)
+    with pytest.raises(RunInterrupted) as stop:
+        run_collection([InputItem(src, "IMG_0002")], settings, scheduler=c.scheduler_address)
+    waiter.join()
+    assert (stop.value.summary.done, stop.value.summary.left_running) == (1, [])
+    records = list(read_records(out / "manifest.jsonl"))
+    assert [r["status"] for r in records] == ["done"]
+    assert all((out / name).is_file() for name in records[0]["files"])
+    # a task still running after the wait is named: it may still write its files
+    monkeypatch.setattr("torchiid.collection.dask_runner.STOP_GRACE", 0.5)
+    marker.unlink()
+    go.unlink()
+    out2 = tmp_path / "out2"
+    waiter = _interrupt_when_held(marker)
+    argv = ["decompose", str(src), "-o", str(out2), "--dask-scheduler", c.scheduler_address]
+    assert main([*argv, *FAST]) == 130
+    waiter.join()
+    os.kill(int(marker.read_text()), signal.SIGKILL)  # the task would go on for a minute
+    err = capsys.readouterr().err
+    assert "waiting up to 0.5 s for the 1 image(s) running on the cluster" in caplog.text
+    assert "note: 1 image(s) were still running on the cluster and may still write" in err
+    assert str(src) in err.splitlines()[-1]

@@ -122,3 +122,22 @@ def test_ten_thousand_files_list_quickly(tmp_path):
     assert len(items) == 10_000 and items[0].key == "00000"
     assert time.perf_counter() - t0 < 5
     assert os.path.basename(items[-1].path) == "09999.jpg" and Path(items[-1].path).parent == folder
+
+
+def test_globs_leave_out_the_output_folder(library, monkeypatch):
+    monkeypatch.chdir(library.parent)
+    out = library / "out"
+    photo(out / "cover-reflectance.png")  # outputs of an earlier run
+    photo(out / "2019" / "IMG_0001-reflectance.png")
+    keys = _keys(list_inputs(["library/**/*.png"], exclude=[Path("library/out")]))
+    assert "2020/trip/IMG_0002" in keys and not [k for k in keys if k.startswith("out/")]
+    assert "out/cover-reflectance" in _keys(list_inputs(["library/**/*.png"]))
+    # a glob whose fixed part is the output folder names its files on purpose
+    assert _keys(list_inputs(["library/out/*.png"], exclude=[out])) == ["cover-reflectance"]
+
+
+def test_names_that_differ_only_in_case_are_refused(tmp_path):
+    a = photo(tmp_path / "a" / "IMG_0001.png")
+    b = photo(tmp_path / "b" / "img_0001.png")
+    with pytest.raises(TorchiidError, match=r"same outputs \(names that differ only in case\)"):
+        unique_keys(list_inputs([a, b]))  # one set of files on a case-insensitive disk

@@ -21,8 +21,9 @@ from torchiid.collection import (
     plan,
     run_collection,
 )
-from torchiid.collection.job import ImageResult
+from torchiid.collection.job import ImageJob, ImageResult
 from torchiid.collection.manifest import read_records, record_of
+from torchiid.core.exceptions import ModelError
 from torchiid.io.inputs import list_inputs, unique_keys
 from torchiid.io.layers import layer_file_names
 from torchiid.params import Parameters
@@ -112,8 +113,10 @@ def test_a_changed_input_is_hashed_again(library, tmp_path, capsys):
     os.utime(cover, ns=(cover.stat().st_atime_ns, cover.stat().st_mtime_ns + 10**9))
     again = run_collection(items, settings)  # touched, same bytes: hashed, still skipped
     assert (again.done, again.skipped_done, again.hashed) == (0, 2, 1)
-    third = run_collection(items, settings)  # the new time is not recorded: hashed again
-    assert third.hashed == 1 and third.skipped_done == 2
+    refreshed = _last(out)["cover"]  # a record with the new time was appended
+    assert refreshed["mtime_ns"] == cover.stat().st_mtime_ns and refreshed["status"] == "done"
+    third = run_collection(items, settings)  # so the next rerun need not hash it again
+    assert third.hashed == 0 and third.skipped_done == 2
     photo(cover, 7)  # new content: run again, but its old files are not replaced silently
     capsys.readouterr()
     assert _run(cover, library / "2019", "-o", out) == 1
@@ -152,6 +155,59 @@ def test_complete_files_without_a_record_are_recognised(library, tmp_path, capsy
     assert len(Manifest(out / "manifest.jsonl")) == 1
     assert _run(cover, "-o", out) == 0
     assert "0 done, 1 skipped" in capsys.readouterr().err
+    other = library / "2019" / "IMG_0001.png"
+    assert _run(cover, other, "-o", out) == 0  # its record goes after the torn line
+    assert "1 done, 1 skipped" in capsys.readouterr().err
+    manifest = Manifest(out / "manifest.jsonl")
+    assert sorted(manifest.records) == ["IMG_0001", "cover"] and manifest.bad_lines == 1
+
+
+def test_a_set_up_error_stops_the_run_and_is_never_a_bad_input(
+    library, tmp_path, monkeypatch, capsys
+):
+    from torchiid.collection import job
+
+    def no_model(settings):
+        raise ModelError("ONNX model not found at /nowhere/m.onnx; run `torchiid export-onnx`")
+
+    monkeypatch.setattr(job, "_STATES", {})
+    monkeypatch.setattr(job, "_new_state", no_model)
+    out = tmp_path / "out"
+    out.mkdir()  # an existing folder: a failure would be recorded at once
+    cover = library / "cover.png"
+    assert _run(cover, "-o", out) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "torchiid: error: cannot set up the run: ONNX model not found at /nowhere/m.onnx; "
+        "run `torchiid export-onnx`"
+    ]
+    assert not (out / "manifest.jsonl").exists()
+    # a Dask task: an "error" result (Dask retries it), never a bad input
+    settings = RunSettings(out=out, params=Parameters(), method="retinex")
+    result = job.process_image(ImageJob(0, str(cover), "cover"), settings)
+    assert result.failure == "error" and result.status == "failed"
+    assert result.message.startswith(f"{cover}: not processed: cannot set up the run: ONNX")
+    monkeypatch.undo()
+    assert _run(cover, "-o", out) == 0  # the model is back: it runs
+    assert "1 done, 0 skipped, 0 failed" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "failure, skipped", [("input", True), ("error", False), ("worker", False), ("output", False)]
+)
+def test_only_bad_inputs_are_skipped_as_failed_before(library, tmp_path, failure, skipped):
+    out = tmp_path / "out"
+    out.mkdir()
+    cover = library / "cover.png"
+    st = cover.stat()
+    phash = params_hash(RunSettings(out=out, params=Parameters(), method="retinex"))
+    result = ImageResult(0, "cover", str(cover), "failed", "why", failure=failure)
+    result.sha256, result.size, result.mtime_ns = _sha(cover), st.st_size, st.st_mtime_ns
+    (out / "manifest.jsonl").write_text(json.dumps(record_of(result, phash)) + "\n")
+    items = unique_keys(list_inputs([cover]))
+    decided = plan(items, Manifest(out / "manifest.jsonl"), phash, out=out)
+    assert (len(decided.failed_before), len(decided.todo)) == ((1, 0) if skipped else (0, 1))
+    decided = plan(items, Manifest(out / "manifest.jsonl"), phash, out=out, retry_failed=True)
+    assert len(decided.todo) == 1
 
 
 def test_a_second_run_on_the_same_folder_is_refused(library, tmp_path, capsys):
@@ -170,15 +226,19 @@ def test_a_second_run_on_the_same_folder_is_refused(library, tmp_path, capsys):
     assert not (out / ".torchiid.lock").exists()
 
 
-def test_list_file_masks_and_a_failure_into_an_existing_folder(library, tmp_path):
+def test_list_file_masks_and_a_failure_into_an_existing_folder(library, tmp_path, capsys):
     mask = np.zeros((64, 80), np.uint8)
     mask[16:48, 20:60] = 255
     cv2.imwrite(str(library / "mask.png"), mask)
     listing = library / "selection.csv"
-    listing.write_text("path,mask\ncover.png,mask.png\n2019/IMG_0001.png,\nmissing.png,\n")
+    listing.write_text(
+        "path,mask\ncover.png,mask.png\n2019/IMG_0001.png,\nmissing.png,\n"
+        "2020/broken.png,mask.png\n"
+    )
     out = tmp_path / "out"
     out.mkdir()
-    assert main(["decompose", "--list", str(listing), "-o", str(out), *FAST]) == 1
+    argv = ["decompose", "--list", str(listing), "-o", str(out), *FAST]
+    assert main(argv) == 1
     refl = cv2.imread(str(out / "cover-reflectance.png"))
     assert (refl[:16] == 0).all() and refl[30, 40].any()  # the row's own mask
     records = _last(out)
@@ -186,6 +246,24 @@ def test_list_file_masks_and_a_failure_into_an_existing_folder(library, tmp_path
     assert records["cover"]["mask_sha256"] == _sha(library / "mask.png")
     assert records["missing"]["message"].endswith("missing.png: no such file")
     assert records["2019/IMG_0001"]["status"] == "done"
+    broken = records["2020/broken"]
+    assert broken["failure"] == "input" and broken["mask_sha256"] == _sha(library / "mask.png")
+    capsys.readouterr()
+    assert main(argv) == 1  # the bad image with its own mask is skipped too
+    assert "0 done, 4 skipped (2 failed before), 0 failed" in capsys.readouterr().err
+    (out / "manifest.jsonl").unlink()  # complete files without a record: their mask counts
+    assert main(argv) == 1
+    assert "2 done, 0 skipped, 2 failed" in capsys.readouterr().err
+    assert _last(out)["cover"]["mask_sha256"] == _sha(library / "mask.png")
+    assert json.loads((out / "cover-info.json").read_text())["mask_sha256"] == _sha(
+        library / "mask.png"
+    )
+    assert main(argv) == 1
+    assert "0 done, 4 skipped (2 failed before), 0 failed" in capsys.readouterr().err
+    mask[16:48, 10:70] = 255  # another mask: the files there are not this decomposition
+    cv2.imwrite(str(library / "mask.png"), mask)
+    assert main(argv) == 1
+    assert "cover-reflectance-linear16.png exists; pass --overwrite" in capsys.readouterr().err
 
 
 def test_the_skip_pass_is_linear_and_hashes_only_changed_files(tmp_path):

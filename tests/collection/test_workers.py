@@ -14,11 +14,15 @@ import sys
 import threading
 import time
 
+import pytest
 from conftest import FAST
 
 from torchiid.cli import main
+from torchiid.collection import RunSettings, SetupError, run_collection
 from torchiid.collection.manifest import read_records
+from torchiid.io.inputs import list_inputs
 from torchiid.io.layers import layer_file_names
+from torchiid.params import Parameters
 
 
 def _kill_when_held(folder, stem, sig=signal.SIGKILL, timeout=90):
@@ -119,3 +123,33 @@ def test_ctrl_c_stops_every_worker_and_leaves_no_partial_outputs(library, tmp_pa
         assert record["key"] != "2020/trip/IMG_0002"
         for name in record["files"]:
             assert (out / name).is_file()
+
+
+def test_sigterm_to_one_worker_is_a_worker_death_not_the_end_of_the_run(
+    library, tmp_path, monkeypatch, capsys
+):
+    hold = tmp_path / "hold"
+    hold.mkdir()
+    monkeypatch.setenv("TORCHIID_TEST_HOLD", f"cover:{hold}")
+    out = tmp_path / "out"
+    killer = _kill_when_held(hold, "cover", sig=signal.SIGTERM)
+    argv = ["decompose", str(library / "cover.png"), str(library / "2019"), "-o", str(out)]
+    assert main([*argv, "--workers", "1", *FAST]) == 0
+    killer.join()
+    err = capsys.readouterr().err
+    assert "cover.png: its worker process died (stopped by SIGTERM); trying it again" in err
+    assert "2 done, 0 skipped, 0 failed" in err
+    records = _last(out)
+    assert records["cover"]["status"] == "done" and records["cover"]["attempts"] == 2
+    assert not list(out.rglob(".*"))
+
+
+def test_a_worker_that_cannot_be_set_up_stops_the_run(library, tmp_path):
+    out = tmp_path / "out"
+    settings = RunSettings(
+        out=out, params=Parameters(), method="retinex", mask=tmp_path / "gone.png"
+    )
+    items = list_inputs([library / "cover.png"])
+    with pytest.raises(SetupError, match=r"a worker process cannot set up the run: .*gone.png"):
+        run_collection(items, settings, workers=1)
+    assert not out.exists()  # nothing recorded: no image failed

@@ -11,7 +11,16 @@ raises something unexpected (not a :class:`TorchiidError`: a ``MemoryError``, a 
 again up to ``retries`` times, maybe on another worker. A task whose worker dies is re-run by
 the scheduler on another worker; one that has killed ``distributed.scheduler.allowed-failures``
 workers (default 3) ends as ``KilledWorker`` and is recorded as failed. Temporary files of
-killed workers are removed at the end of the run.
+killed workers are removed at the end of the run. A worker that cannot be set up (the model,
+the device, the ``--mask`` file where it runs) fails the image as ``"error"``: retried, and
+tried again by a rerun.
+
+Interrupts: Dask cannot stop a task that is running (cancelling it only makes the scheduler
+forget it; the worker's thread goes on and writes the image's files). So on Ctrl-C or SIGTERM
+the client cancels the tasks not started yet, then waits up to :data:`STOP_GRACE` seconds (a
+second Ctrl-C stops waiting) for the running ones and records those that end; any still running
+after that are cancelled too and named (``left_running``): they may still write their files,
+without a manifest record, and a rerun recognises complete files as done.
 
 ``distributed`` is an optional dependency: ``pip install 'torchiid[dask]'``.
 """
@@ -43,6 +52,9 @@ log = logging.getLogger("torchiid")
 
 #: seconds to wait for the scheduler
 CONNECT_TIMEOUT = 20.0
+
+#: seconds an interrupted run waits for the tasks that are running
+STOP_GRACE = 30.0
 
 
 class ImageTaskError(RuntimeError):
@@ -84,6 +96,8 @@ def run_on_dask(
     decompose_fn: Callable | None = None,
     connect_timeout: float | None = None,
     in_flight: list | None = None,
+    late: list | None = None,
+    left_running: list | None = None,
 ) -> Iterator[ImageResult]:
     """Run the jobs on the cluster of ``address``; yields each result as its task ends.
 
@@ -95,13 +109,16 @@ def run_on_dask(
         decompose_fn: a picklable decomposition function (default
             :func:`torchiid.model.decompose`).
         connect_timeout: seconds to wait for the scheduler (default :data:`CONNECT_TIMEOUT`).
-        in_flight: filled with the jobs not finished yet (for the interrupt message).
+        in_flight: filled with the jobs not finished yet.
+        late: when the generator is interrupted or closed early, filled with the results of
+            the tasks that ended while it waited for the running ones (see the module notes).
+        left_running: then filled with the jobs whose tasks were still running after
+            :data:`STOP_GRACE` seconds (cancelled; they may still write their files).
 
     Raises:
         TorchiidError: ``distributed`` is not installed or the scheduler cannot be reached.
     """
     from distributed import as_completed
-    from distributed.scheduler import KilledWorker
 
     client = _client(address, CONNECT_TIMEOUT if connect_timeout is None else connect_timeout)
     phash = params_hash(settings)
@@ -128,27 +145,73 @@ def run_on_dask(
         if in_flight is not None:
             in_flight[:] = [job for _, job in futures.values()]
         for future in as_completed([f for f, _ in futures.values()]):
-            _, job = futures.pop(future.key)
+            result = _outcome(future, futures[future.key][1], retries)
+            del futures[future.key]  # an interrupt from here on: the caller has the result
             if in_flight is not None:
                 in_flight[:] = [j for _, j in futures.values()]
-            try:
-                result = future.result()
-            except KilledWorker as exc:
-                result = _failed(job, f"workers died while processing it ({exc})", "worker")
-            except ImageTaskError as exc:
-                result = _failed(job, str(exc), "error", retries + 1)
-            except Exception as exc:  # noqa: BLE001 - one image's task
-                result = _failed(job, error_message(job.path, exc), "error", retries + 1)
             yield result
         folders = {job.folder for job in jobs}
         for folder in folders:
             remove_temporary_sets(Path(settings.out, folder) if folder else Path(settings.out))
     finally:
-        if futures:
+        try:
+            if futures:  # interrupted (or closed early): see the module notes
+                _stop(client, futures, retries, late, left_running)
+        finally:
             with contextlib.suppress(Exception):
-                client.cancel([f for f, _ in futures.values()])
-        with contextlib.suppress(Exception):
-            client.close()
+                client.close()
+
+
+def _outcome(future, job: ImageJob, retries: int) -> ImageResult:
+    """The result of a finished task."""
+    from distributed.scheduler import KilledWorker
+
+    try:
+        return future.result()
+    except KilledWorker as exc:
+        return _failed(job, f"workers died while processing it ({exc})", "worker")
+    except ImageTaskError as exc:
+        return _failed(job, str(exc), "error", retries + 1)
+    except Exception as exc:  # noqa: BLE001 - one image's task
+        return _failed(job, error_message(job.path, exc), "error", retries + 1)
+
+
+def _stop(client, futures: dict, retries: int, late: list | None, left: list | None) -> None:
+    """Cancel the tasks not started, wait for the running ones, collect what ended."""
+    from distributed import wait as dask_wait
+
+    late = [] if late is None else late
+    left = [] if left is None else left
+    running: set = set()
+    try:
+        for keys in client.processing().values():
+            running.update(keys)
+    except Exception:  # noqa: BLE001 - then every unfinished task is waited for
+        running = {key for key, (f, _) in futures.items() if not f.done()}
+    waiting = [f for key, (f, _) in futures.items() if key not in running and not f.done()]
+    with contextlib.suppress(Exception):
+        client.cancel(waiting)
+    busy = [f for key, (f, _) in futures.items() if key in running and not f.done()]
+    if busy:
+        log.warning(
+            "interrupted: waiting up to %g s for the %d image(s) running on the cluster "
+            "(Ctrl-C again to stop waiting)",
+            STOP_GRACE,
+            len(busy),
+        )
+        try:
+            dask_wait(busy, timeout=STOP_GRACE)
+        except KeyboardInterrupt:
+            pass
+        except Exception:  # noqa: BLE001 - the timeout: what ended is collected below
+            pass
+    for key, (future, job) in list(futures.items()):
+        if future.done() and future.status != "cancelled":
+            late.append(_outcome(future, job, retries))
+        elif key in running:
+            left.append(job)
+    with contextlib.suppress(Exception):
+        client.cancel([f for f, _ in futures.values() if not f.done()])
 
 
 def _failed(job: ImageJob, message: str, failure: str, attempts: int = 1) -> ImageResult:

@@ -5,16 +5,21 @@
 worker. It never raises for a bad input: the :class:`ImageResult` says ``"failed"`` with the
 one-line message. Each process keeps what is worth keeping between images (threads, the shared
 mask, the loaded feature extractor) in :func:`worker_state`, built once per process and run
-settings.
+settings. A process that cannot be set up (the model missing or not loadable, the device, the
+``--mask`` file) raises :class:`SetupError` from :func:`worker_state`: the ``decompose`` process
+and the ``--workers`` pool stop the run on it; :func:`process_image` (a Dask task) records it as
+an ``"error"`` failure, which a rerun tries again, never as a bad input.
 
 Outputs already there: without ``overwrite`` an image whose files exist is refused, unless they
 are this very decomposition — every file present and ``-info.json`` recording the same input
-SHA-256 and parameters hash (``"recovered"``: a run stopped after the files were in place but
-before the manifest said so, or a worker died just after its commit).
+SHA-256, parameters hash and SHA-256 of the image's own mask, if any (``"recovered"``: a run
+stopped after the files were in place but before the manifest said so, or a worker died just
+after its commit).
 
 ``TORCHIID_TEST_HOLD=<stem>:<folder>`` (tests only): the first time an image of that stem has
 been written, before its files are put in place, the process writes its pid into
-``<folder>/<stem>.pid`` and waits there (up to a minute) to be killed or interrupted.
+``<folder>/<stem>.pid`` and waits there (up to a minute, or until ``<folder>/<stem>.go``
+exists) to be killed or interrupted.
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from torchiid.baselines.retinex import retinex_decomposition
-from torchiid.core.exceptions import ConvergenceWarning, ImageError, TorchiidError
+from torchiid.core.exceptions import ConvergenceWarning, ImageError, ModelError, TorchiidError
 from torchiid.core.stats import image_quantile
 from torchiid.io import load_image, load_mask, save_image
 from torchiid.io.layers import OutputError, OutputSet, layer_file_names, write_layers
@@ -48,6 +53,7 @@ __all__ = [
     "InterruptedAfterCommit",
     "RETINEX_DEFAULTS",
     "RunSettings",
+    "SetupError",
     "error_message",
     "file_sha256",
     "output_names",
@@ -221,8 +227,7 @@ def _one_line(text: str) -> str:
     return " ".join(text.split())
 
 
-def error_message(path: str | os.PathLike, exc: BaseException) -> str:
-    """One line naming the input and the problem."""
+def _describe(exc: BaseException) -> str:
     if isinstance(exc, TorchiidError):
         msg = _one_line(str(exc))
     elif isinstance(exc, OSError):
@@ -235,7 +240,21 @@ def error_message(path: str | os.PathLike, exc: BaseException) -> str:
             f"internal error ({type(exc).__name__}: {_one_line(str(exc))}); "
             "rerun with --verbose for the traceback"
         )
+    return msg
+
+
+def error_message(path: str | os.PathLike, exc: BaseException) -> str:
+    """One line naming the input and the problem."""
+    msg = _describe(exc)
     return msg if str(path) in msg else f"{path}: {msg}"
+
+
+class SetupError(TorchiidError):
+    """A process cannot be set up for the run: the model, the device or the ``--mask`` file.
+
+    Not a fault of any image: the run stops (``decompose``, ``--workers``), or the image is
+    recorded as an ``"error"`` failure that a rerun tries again (Dask).
+    """
 
 
 @dataclass
@@ -256,6 +275,9 @@ def worker_state(settings: RunSettings) -> WorkerState:
 
     Sets the torch threads (``settings.threads``), resolves the device, loads the ``--mask``
     file and, for the semantic method, loads the feature extractor (the ONNX session) once.
+
+    Raises:
+        SetupError: any of these failed (one line; the cause chained).
     """
     key = (
         settings.method,
@@ -267,7 +289,11 @@ def worker_state(settings: RunSettings) -> WorkerState:
     with _STATES_LOCK:  # a Dask worker may run several tasks at once
         state = _STATES.get(key)
         if state is None:
-            state = _STATES[key] = _new_state(settings)
+            try:
+                state = _new_state(settings)
+            except Exception as exc:  # noqa: BLE001 - whatever it is, no image can run
+                raise SetupError(f"cannot set up the run: {_describe(exc)}") from exc
+            _STATES[key] = state
     return state
 
 
@@ -302,13 +328,16 @@ def _test_hold(stem: str) -> None:
     tmp = marker.with_suffix(".tmp")
     tmp.write_text(str(os.getpid()))
     os.replace(tmp, marker)
+    go = Path(folder) / f"{stem}.go"
     deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
+    while time.monotonic() < deadline and not go.exists():
         time.sleep(0.05)
 
 
-def _recorded(out_dir: Path, names: list[str], stem: str, sha: str, phash: str) -> bool:
-    """The outputs there are complete and record this input and these parameters."""
+def _recorded(
+    out_dir: Path, names: list[str], stem: str, sha: str, phash: str, mask_sha: str | None
+) -> bool:
+    """The outputs there are complete and record this input, its own mask and these parameters."""
     if not all(os.path.isfile(out_dir / n) for n in names):
         return False
     try:
@@ -319,6 +348,7 @@ def _recorded(out_dir: Path, names: list[str], stem: str, sha: str, phash: str) 
         isinstance(info, dict)
         and info.get("input_sha256") == sha
         and info.get("params_hash") == phash
+        and info.get("mask_sha256") == mask_sha
     )
 
 
@@ -436,12 +466,15 @@ def process_image(
     Returns:
         The :class:`ImageResult`: ``"done"`` with the files written (paths relative to the
         output folder), or ``"failed"`` with the one-line message and what failed:
-        ``"input"`` (the file cannot be used: a :class:`TorchiidError`), ``"output"`` (an
-        output exists or cannot be written: :class:`~torchiid.io.layers.OutputError`) or
-        ``"error"`` (anything unexpected).
+        ``"input"`` (the file, or its own mask, cannot be used: a :class:`TorchiidError`),
+        ``"output"`` (an output exists or cannot be written:
+        :class:`~torchiid.io.layers.OutputError`) or ``"error"`` (anything unexpected, a
+        :class:`~torchiid.core.exceptions.ModelError`, or a process that cannot be set up).
 
     Raises:
         KeyboardInterrupt: interrupted; nothing of the image was put in place.
+        SetupError: never: a process that cannot be set up makes an ``"error"`` result (see
+            :func:`worker_state`; the ``decompose`` process and the pool check it first).
         InterruptedAfterCommit: interrupted while the files were put in place; they are.
     """
     t0 = time.perf_counter()
@@ -459,7 +492,18 @@ def process_image(
             result.size, result.mtime_ns = st.st_size, st.st_mtime_ns
         except OSError:
             pass
-        state = worker_state(settings)
+        if job.mask is not None:  # first: every record of the image names its mask
+            try:
+                result.mask_sha256 = file_sha256(job.mask)
+            except OSError:
+                result.mask_sha256 = None  # missing: load_mask says why, below
+        try:
+            state = worker_state(settings)
+        except SetupError as exc:  # not the image's fault: an "error", tried again
+            result.message = f"{job.path}: not processed: {_one_line(str(exc))}"
+            result.failure = "error"
+            result.seconds = time.perf_counter() - t0
+            return result
         tx = OutputSet(out_dir, overwrite=settings.overwrite, label=stem)
         for name in names:
             target = out_dir / name
@@ -471,7 +515,10 @@ def process_image(
                 except OSError:
                     result.sha256 = None
                 same = result.sha256 and not settings.redo
-                if same and _recorded(out_dir, names, stem, result.sha256, phash):
+                recorded = same and _recorded(
+                    out_dir, names, stem, result.sha256, phash, result.mask_sha256
+                )
+                if recorded:
                     result.status, result.recovered = "done", True
                     result.files = [f"{folder}/{n}" if folder else n for n in names]
                     result.seconds = time.perf_counter() - t0
@@ -482,7 +529,6 @@ def process_image(
         image, mask = loaded.image, loaded.mask
         masks = [(settings.mask, state.shared_mask)]
         if job.mask is not None:
-            result.mask_sha256 = file_sha256(job.mask)
             masks.append((job.mask, load_mask(job.mask)))
         for mask_path, m in masks:
             if m is None:
@@ -505,6 +551,7 @@ def process_image(
         extra = {"input_sha256": result.sha256, "params_hash": phash}
         if job.mask is not None:
             extra["mask"] = str(job.mask)
+            extra["mask_sha256"] = result.mask_sha256
         with tx:
             _write_outputs(tx, stem, loaded, decomposition, settings, params, seconds, extra)
             _test_hold(stem)
@@ -530,7 +577,7 @@ def process_image(
                 pass
         if isinstance(exc, OutputError):
             result.failure = "output"
-        elif isinstance(exc, TorchiidError):
+        elif isinstance(exc, TorchiidError) and not isinstance(exc, ModelError):
             result.failure = "input"
         else:
             result.failure = "error"

@@ -25,15 +25,17 @@ of a key is the one that counts. Fields:
 
 **Skipping on a rerun** (:func:`plan`): an input is skipped when its key's last record has the
 same parameters hash, the same input SHA-256 (and mask SHA-256), and is ``done`` with every
-listed file still present — or ``failed``, unless ``retry_failed`` (a failure of the output
-folder, ``"output"``, is always tried again: it depends on the folder and on ``--overwrite``,
-not on the input). The input's SHA-256 is not
-recomputed when its path, size and modification time (ns) are those recorded (the rule of
-make and rsync: a file rewritten with the same size within the same nanosecond timestamp
-would be missed; ``redo`` recomputes everything); otherwise the file is hashed again, so a
-touched but unchanged file is still skipped. The manifest is read once (one pass over its
-lines, a torn last line of a killed run ignored), each output folder is listed once, and each
-input is ``stat``-ed once: a rerun over 10,000 done images takes seconds.
+listed file still present — or ``failed`` as a bad input (``"input"``), unless
+``retry_failed``. Every other failure is tried again: ``"output"`` depends on the folder and on
+``--overwrite``, ``"error"`` and ``"worker"`` on the process, the machine, the model, not on
+the input. The input's SHA-256 is not recomputed when its path, size and modification time
+(ns) are those recorded (the rule of make and rsync: a file rewritten with the same size within
+the same nanosecond timestamp would be missed; ``redo`` recomputes everything); otherwise the
+file is hashed again, so a touched but unchanged file is still skipped, and a refreshed record
+(the new path, size and time; :attr:`Plan.refreshed`) is appended so that the next rerun need
+not hash it again. The manifest is read once (one pass over its lines, a torn last line of a
+killed run ignored; the next writer starts on a new line), each output folder is listed once,
+and each input is ``stat``-ed once: a rerun over 10,000 done images takes seconds.
 """
 
 from __future__ import annotations
@@ -142,9 +144,12 @@ class ManifestWriter:
         self.pending.append(record)
         if self._f is None and not (self.eager or record["status"] == "done"):
             return
+        text = ""
         if self._f is None:
+            if _torn(self.path):  # a killed writer's last line: ours starts on a new one
+                text = "\n"
             self._f = open(self.path, "a", encoding="utf-8")  # noqa: SIM115 - kept open
-        text = "".join(json.dumps(r, allow_nan=False) + "\n" for r in self.pending)
+        text += "".join(json.dumps(r, allow_nan=False) + "\n" for r in self.pending)
         self._f.write(text)
         self._f.flush()
         os.fsync(self._f.fileno())
@@ -156,6 +161,18 @@ class ManifestWriter:
         if self._f is not None:
             self._f.close()
             self._f = None
+
+
+def _torn(path: Path) -> bool:
+    """The file exists, is not empty and does not end with a newline."""
+    try:
+        with open(path, "rb") as f:
+            if f.seek(0, os.SEEK_END) == 0:
+                return False
+            f.seek(-1, os.SEEK_END)
+            return f.read(1) != b"\n"
+    except OSError:
+        return False
 
 
 class _Listing:
@@ -185,35 +202,44 @@ class Plan:
         done_before: inputs skipped because they are done.
         failed_before: ``(input, record)`` of inputs skipped because they failed before.
         hashed: inputs whose SHA-256 was computed to decide (size or time changed).
+        refreshed: records of skipped inputs that were hashed again and found unchanged, with
+            their new path, size and time: appending them spares the next rerun the hashing.
     """
 
     todo: list[ImageJob] = field(default_factory=list)
     done_before: list[InputItem] = field(default_factory=list)
     failed_before: list[tuple[InputItem, dict]] = field(default_factory=list)
     hashed: int = 0
+    refreshed: list[dict] = field(default_factory=list)
 
 
-def _sha_of(path: Path, record: dict, plan_: Plan) -> str | None:
+def _sha_of(path: Path, record: dict, plan_: Plan) -> tuple[str | None, dict | None]:
     """The file's SHA-256: the recorded one when path, size and time match, else hashed.
 
     ``None`` when the file cannot be read (as recorded for an input that could not be read).
+    Second: when the file was hashed and is unchanged, its record with the new path, size and
+    time (to append if the input is skipped), else ``None``.
     """
     try:
         st = os.stat(path)
     except OSError:
-        return None
+        return None, None
+    name = os.path.abspath(path)
     same = (
-        record.get("input") == os.path.abspath(path)
+        record.get("input") == name
         and record.get("size") == st.st_size
         and record.get("mtime_ns") == st.st_mtime_ns
     )
     if same:
-        return record.get("sha256")
+        return record.get("sha256"), None
     try:
         plan_.hashed += 1
-        return file_sha256(path)
+        sha = file_sha256(path)
     except OSError:
-        return None
+        return None, None
+    if sha is None or sha != record.get("sha256"):
+        return sha, None
+    return sha, {**record, "input": name, "size": st.st_size, "mtime_ns": st.st_mtime_ns}
 
 
 def plan(
@@ -232,7 +258,8 @@ def plan(
         manifest: the output folder's manifest.
         params: the run's parameters hash.
         out: the output folder (to check that a done image's files are still there).
-        retry_failed: run inputs whose last record is ``failed`` (else they are skipped).
+        retry_failed: run inputs whose last record is an ``"input"`` failure (else they are
+            skipped; every other failure runs again anyway).
         redo: ignore the manifest: run every input.
     """
     result = Plan()
@@ -245,7 +272,7 @@ def plan(
         if record is None or record.get("params") != params:
             result.todo.append(job)
             continue
-        sha = _sha_of(item.path, record, result)
+        sha, refreshed = _sha_of(item.path, record, result)
         if sha != record.get("sha256"):  # None == None: still missing or unreadable
             result.todo.append(job)
             continue
@@ -268,10 +295,14 @@ def plan(
                 result.done_before.append(item)
             else:
                 result.todo.append(job)
-        elif retry_failed or record.get("failure") == "output":
+                continue
+        elif retry_failed or record.get("failure") != "input":
             result.todo.append(job)
+            continue
         else:
             result.failed_before.append((item, record))
+        if refreshed is not None:
+            result.refreshed.append(refreshed)
     return result
 
 

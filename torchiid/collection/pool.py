@@ -9,10 +9,17 @@ worker is on. When a worker dies (killed, out of memory, a crash in native code)
 image is lost: its temporary files are removed, it is given to a new worker again (``retries``
 times, default once) and the other workers go on undisturbed.
 
-An interrupt (Ctrl-C reaches every process of the terminal's group; SIGTERM to the parent is
-passed on to the workers) stops each worker in its image: the image's temporary files are
-removed (an image whose files were being put in place completes and is reported), and the
-parent records the results that arrive, then returns.
+An interrupt of the run (Ctrl-C reaches every process of the terminal's group; SIGTERM to the
+parent is passed on to the workers) stops each worker in its image: the image's temporary files
+are removed (an image whose files were being put in place completes and is reported), and the
+parent records the results that arrive, then returns. Only a signal to the parent ends the run:
+a worker stopped by a signal of its own (SIGTERM or SIGINT to that process alone) is a worker
+that died; its image is given to a new worker like any other.
+
+A worker that cannot be set up (:func:`~.job.worker_state`: the model, the device, the
+``--mask`` file) says so before it takes an image, and the run stops with that
+:class:`~.job.SetupError`: every worker would fail the same way, and a bad model is not a bad
+input.
 """
 
 from __future__ import annotations
@@ -37,6 +44,7 @@ from torchiid.collection.job import (
     ImageResult,
     InterruptedAfterCommit,
     RunSettings,
+    SetupError,
     process_image,
     with_attempt,
     worker_state,
@@ -90,20 +98,28 @@ def _worker_main(conn, settings: RunSettings, decompose_fn: Callable | None) -> 
 
     It starts with SIGINT and SIGTERM blocked (see :meth:`WorkerPool._start`), so that an
     interrupt during the start-up imports waits until here; both then raise
-    ``KeyboardInterrupt``, which ends the worker after telling the parent.
+    ``KeyboardInterrupt``, which ends the worker after telling the parent which signal it was
+    (the first one only: Ctrl-C to the group and the parent's SIGTERM often both arrive, and
+    the second must not interrupt the removal of the image's temporary files).
     """
+    received: list[str] = []
 
     def terminate(signum, frame):
-        raise KeyboardInterrupt
+        received.append(signal.Signals(signum).name)
+        if len(received) == 1:  # a second signal must not break off the clean-up
+            raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, terminate)
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGINT, terminate)
     logging.basicConfig(level=logging.WARNING, format="torchiid: %(message)s")
     kwargs = {} if decompose_fn is None else {"decompose_fn": decompose_fn}
     try:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, _SIGNALS)
-        with contextlib.suppress(Exception):  # a broken model is reported per image
+        try:
             worker_state(settings)
+        except SetupError as exc:  # the parent stops the run: no image could be processed
+            conn.send(("setup_failed", str(exc)))
+            return
         conn.send(("ready", os.getpid()))
         while True:
             job = conn.recv()
@@ -117,7 +133,7 @@ def _worker_main(conn, settings: RunSettings, decompose_fn: Callable | None) -> 
             conn.send(("result", result))
     except KeyboardInterrupt:
         with contextlib.suppress(Exception):
-            conn.send(("interrupted", os.getpid()))
+            conn.send(("interrupted", received[-1] if received else "SIGINT"))
     except (EOFError, BrokenPipeError, ConnectionResetError):
         pass
     finally:
@@ -150,6 +166,7 @@ class _Worker:
     ready: bool = False
     started_jobs: int = 0
     stopping: bool = False
+    interrupted: str | None = None  # the signal that stopped it, when it was not the run's
     log: list = field(default_factory=list)
 
 
@@ -231,7 +248,8 @@ class WorkerPool:
 
         Raises:
             KeyboardInterrupt: interrupted (the workers are stopped first; results that
-                arrived while they stopped were yielded before).
+                arrived while they stopped are in :attr:`late_results`).
+            SetupError: a worker process cannot be set up (the workers are stopped first).
             TorchiidError: the worker processes die before they can take an image.
         """
         queue = deque(jobs)
@@ -257,16 +275,20 @@ class WorkerPool:
                     except (EOFError, OSError):
                         pass
                     for kind, payload in messages:
-                        if kind == "interrupted":  # Ctrl-C reached the workers: stop the run
-                            raise KeyboardInterrupt
-                        if kind == "result":
+                        if kind == "setup_failed":
+                            raise SetupError(f"a worker process {payload}")
+                        if kind == "interrupted":
+                            # a signal to the run reaches this process too, and it stops here
+                            # first: this one was for the worker alone, which now ends
+                            w.interrupted = payload
+                        elif kind == "result":
                             w.job = None
                             pending -= 1
                             yield payload
                         else:
                             w.ready = True
-                    if not messages or not w.process.is_alive():
-                        if w.process.is_alive() and not w.conn.closed:
+                    if not messages or w.interrupted or not w.process.is_alive():
+                        if w.process.is_alive() and not w.conn.closed and not w.interrupted:
                             continue
                         result = self._died(w, queue)
                         if result is not None:
@@ -300,7 +322,7 @@ class WorkerPool:
             w.conn.close()
         job = w.job
         if job is None:
-            if not w.stopping:
+            if not w.stopping and not w.started_jobs:
                 self._early_deaths += 1
                 if self._early_deaths >= 3 * self.n:
                     raise TorchiidError(
@@ -309,7 +331,7 @@ class WorkerPool:
                     )
             return None
         self.deaths += 1
-        how = _death(w.process.exitcode)
+        how = f"stopped by {w.interrupted}" if w.interrupted else _death(w.process.exitcode)
         folder = Path(self.settings.out, job.folder) if job.folder else Path(self.settings.out)
         remove_temporary_sets(folder, job.stem)
         if job.attempt <= self.retries:

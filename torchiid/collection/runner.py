@@ -5,9 +5,13 @@ the images are processed in this process, by ``--workers`` processes or on a Das
 
 1. take the output folder's lock (:class:`~.lock.OutputLock`);
 2. read the manifest once and decide what to skip (:func:`~.manifest.plan`);
-3. process the rest, appending one manifest record per image as it ends;
-4. on an interrupt, record the images that completed, stop the workers and raise
-   :class:`RunInterrupted`; the lock is always released.
+3. set up the processing (in this process: the model, the device, the ``--mask`` file; with
+   workers: each worker does it and reports it), and stop the run with a one-line
+   :class:`~.job.SetupError` when that fails (nothing is recorded for the images);
+4. process the rest, appending one manifest record per image as it ends;
+5. on an interrupt, record the images that completed, stop the workers (on Dask: cancel the
+   tasks not started, wait up to :data:`~.dask_runner.STOP_GRACE` seconds for the running ones
+   and record those that end) and raise :class:`RunInterrupted`; the lock is always released.
 """
 
 from __future__ import annotations
@@ -23,8 +27,10 @@ from torchiid.collection.job import (
     ImageResult,
     InterruptedAfterCommit,
     RunSettings,
+    SetupError,
     params_hash,
     process_image,
+    worker_state,
 )
 from torchiid.collection.lock import OutputLock
 from torchiid.collection.manifest import (
@@ -56,6 +62,10 @@ class RunSummary:
         hashed: inputs whose SHA-256 had to be computed to decide.
         interrupted_on: images being processed when the run was interrupted (nothing of
             them was written).
+        left_running: images whose Dask tasks were still running when the run stopped: their
+            tasks are cancelled, but a task already running cannot be stopped and may still
+            write the image's files (without a manifest record; a rerun recognises complete
+            files, see :func:`~.job.process_image`).
         failures: the failed results of this run.
     """
 
@@ -69,6 +79,7 @@ class RunSummary:
     plan_seconds: float = 0.0
     hashed: int = 0
     interrupted_on: list[str] = field(default_factory=list)
+    left_running: list[str] = field(default_factory=list)
     failures: list[ImageResult] = field(default_factory=list)
 
     @property
@@ -158,6 +169,8 @@ def run_collection(
 
     Raises:
         RunInterrupted: Ctrl-C, SIGINT or SIGTERM; the images that completed are recorded.
+        SetupError: this process or a worker process cannot be set up (the model, the device,
+            the ``--mask`` file); the images that completed before are recorded.
         TorchiidError: another run holds the output folder, or the workers or the cluster
             cannot be used.
     """
@@ -169,6 +182,7 @@ def run_collection(
     results: Iterator[ImageResult] | None = None
     busy: Callable[[], list[ImageJob]] = list
     late: Callable[[], list[ImageResult]] = list
+    left: list[ImageJob] = []
     masks = {item.key: item.mask for item in items}
 
     def record(result: ImageResult) -> None:
@@ -194,6 +208,8 @@ def run_collection(
         summary.skipped_done = len(the_plan.done_before)
         summary.skipped_failed = len(the_plan.failed_before)
         summary.hashed = the_plan.hashed
+        for refreshed in the_plan.refreshed:  # touched, unchanged: the next rerun is fast
+            writer.append(refreshed)
         if reporter is not None:
             reporter.planned(the_plan, summary)
         jobs = the_plan.todo
@@ -203,16 +219,19 @@ def run_collection(
         if scheduler is not None:
             from torchiid.collection.dask_runner import run_on_dask
 
-            in_flight: list[ImageJob] = []
+            finished: list[ImageResult] = []
             results = run_on_dask(
                 jobs,
                 settings,
                 scheduler,
                 retries=retries,
                 decompose_fn=decompose_fn,
-                in_flight=in_flight,
+                late=finished,
+                left_running=left,
             )
-            busy = lambda: []  # noqa: E731 - tasks left on the cluster wrote nothing here
+            # on an interrupt, the tasks that ended while it waited are in `finished`; those
+            # still running are in `left`: cancelled, but they may still write their files
+            late = lambda: finished  # noqa: E731
         elif workers is not None:
             from torchiid.collection.pool import WorkerPool
 
@@ -227,6 +246,7 @@ def run_collection(
             busy = lambda: pool.busy  # noqa: E731
             late = lambda: pool.late_results  # noqa: E731
         else:
+            worker_state(settings)  # a set-up error stops the run before any image
             current: list[ImageJob] = []
             results = _here(jobs, settings, decompose_fn, show_progress, phash, current)
             busy = lambda: list(current)  # noqa: E731
@@ -251,7 +271,12 @@ def run_collection(
             record(result)
             on = [j for j in on if j.index != result.index]
         summary.interrupted_on = [j.path for j in on]
+        summary.left_running = [j.path for j in left]
         raise RunInterrupted(summary) from None
+    except SetupError:
+        for result in late():  # images that completed while the workers stopped
+            record(result)
+        raise
     finally:
         if results is not None:
             results.close()

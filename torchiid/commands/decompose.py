@@ -184,12 +184,15 @@ def run_decompose(args: argparse.Namespace) -> int:
     """Run the ``decompose`` subcommand; returns the exit status.
 
     Everything that concerns the whole run (parameters, device, the output folder, the input
-    list, the ``--mask`` file, the output folder's lock) is checked before any image is
-    decomposed and raises :class:`TorchiidError` (exit status 2). Then every input is processed
-    on its own: a bad input, or an output that cannot be written, is reported in one line
-    naming the file, the other inputs go on, and the status is 1. Each image's files are put in
-    place together (:class:`~torchiid.io.layers.OutputSet`) and recorded in the manifest. An
-    interrupt ends the run with status 130; the interrupted images leave nothing.
+    list, the ``--mask`` file, the output folder's lock, and then, when there is work, the
+    model in this process or in each worker process) is checked before any image is decomposed
+    and raises :class:`TorchiidError` (exit status 2; nothing is recorded as failed). Then
+    every input is processed on its own: a bad input, or an output that cannot be written, is
+    reported in one line naming the file, the other inputs go on, and the status is 1. Each
+    image's files are put in place together (:class:`~torchiid.io.layers.OutputSet`) and
+    recorded in the manifest. An interrupt ends the run with status 130; the interrupted images
+    leave nothing (on Dask, tasks still running after the wait are named: they may still write
+    their files).
     """
     params = params_from_args(args)
     device = resolve_device(args.device)
@@ -246,6 +249,14 @@ def run_decompose(args: argparse.Namespace) -> int:
             f"torchiid: interrupted{where}; {s.done} of {s.total} input(s) written{skipped}",
             file=sys.stderr,
         )
+        if s.left_running:
+            print(
+                f"torchiid: note: {len(s.left_running)} image(s) were still running on the "
+                f"cluster and may still write their files into {args.output} (their tasks are "
+                f"cancelled, but Dask cannot stop a running task; a rerun recognises complete "
+                f"files): {', '.join(s.left_running)}",
+                file=sys.stderr,
+            )
         return 130
     finally:
         printer.close()

@@ -9,7 +9,7 @@ found under, with ``/`` between folders. ``torchiid decompose`` writes the image
 * a **folder**: the folder (its image files; with ``recursive``, those of its subfolders too,
   hidden files and folders excepted, symbolic links to folders not followed);
 * a **glob** (``photos/*/*.jpg``, ``photos/**/*.png``; ``**`` matches any depth): the folder
-  before its first wildcard; image files only;
+  before its first wildcard; image files only (none from the output folder below it);
 * a **list file** (:func:`read_list_file`): the deepest folder holding every image it lists.
 """
 
@@ -114,10 +114,35 @@ def _glob_root(pattern: str) -> Path:
     return Path(*literal) if literal else Path(".")
 
 
-def _expand_glob(pattern: str) -> list[InputItem]:
+def _below_excluded(
+    path: Path, root: Path, excluded: set[tuple[int, int]] | None, seen: dict[str, bool]
+) -> bool:
+    """``path`` lies in an excluded folder below ``root`` (its folders stat-ed once each)."""
+    if not excluded:
+        return False
+    rel = Path(os.path.relpath(path, root)) if str(root) not in ("", ".") else path
+    folder = root
+    for part in rel.parts[:-1]:
+        folder = folder / part
+        name = os.fspath(folder)
+        if name not in seen:
+            try:
+                st = os.stat(folder)
+                seen[name] = (st.st_dev, st.st_ino) in excluded
+            except OSError:
+                seen[name] = False
+        if seen[name]:
+            return True
+    return False
+
+
+def _expand_glob(pattern: str, excluded: set[tuple[int, int]] | None = None) -> list[InputItem]:
     root = _glob_root(pattern)
+    seen: dict[str, bool] = {}
     found = sorted(
-        Path(p) for p in glob.glob(pattern, recursive=True) if _is_image(p) and os.path.isfile(p)
+        Path(p)
+        for p in glob.glob(pattern, recursive=True)
+        if _is_image(p) and os.path.isfile(p) and not _below_excluded(Path(p), root, excluded, seen)
     )
     if not found:
         raise TorchiidError(f"{pattern}: no image file matches this pattern")
@@ -199,8 +224,11 @@ def list_inputs(
             pattern). A file is taken as it is, whatever its suffix.
         recursive: also take the images in the folders' subfolders.
         lists: list files (see :func:`read_list_file`), read after ``inputs``.
-        exclude: folders never entered (the output folder, when it lies inside an input
-            folder, so that outputs are not taken as inputs).
+        exclude: folders whose images are never taken from a folder walk or a glob (the output
+            folder, when it lies below an input folder or a glob's fixed part, so that outputs
+            are not taken as inputs). Files named on their own or in a list file are always
+            taken, and so are the images of a folder, or a glob's fixed part, that is itself
+            excluded.
 
     Returns:
         The images in the order given, each folder's and glob's images sorted by path.
@@ -230,7 +258,7 @@ def list_inputs(
                 )
             out.extend(InputItem(f, _key(f, p)) for f in found)
         elif not os.path.lexists(p) and _MAGIC & set(str(name)):
-            out.extend(_expand_glob(str(name)))
+            out.extend(_expand_glob(str(name), excluded))
         else:
             out.append(InputItem(p, p.stem))
     for list_file in lists:
@@ -238,26 +266,43 @@ def list_inputs(
     return out
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
 def unique_keys(items: Sequence[InputItem]) -> list[InputItem]:
     """The items without repeats of the same file; raises if two would write the same outputs.
 
+    Keys are compared without regard to case (:meth:`str.casefold`): ``IMG_0001.jpg`` and
+    ``img_0001.png`` would write the same files on a case-insensitive disk (macOS, Windows, many
+    network shares).
+
     Raises:
-        TorchiidError: two different files have the same output key.
+        TorchiidError: two different files have the same output key, or keys that differ only
+            in case.
     """
     seen: set[str] = set()
-    keys: dict[str, Path] = {}
+    keys: dict[str, tuple[str, Path]] = {}
     unique = []
     for item in items:
         name = os.path.abspath(item.path)
         if name in seen:
             continue
         seen.add(name)
-        if item.key in keys:
+        folded = item.key.casefold()
+        if folded in keys:
+            other_key, other = keys[folded]
+            if _same_file(other, item.path):  # one file named in two cases (macOS, Windows)
+                continue
+            case = "" if other_key == item.key else " (names that differ only in case)"
             raise TorchiidError(
-                f"two inputs would write the same outputs: {keys[item.key]} "
+                f"two inputs would write the same outputs{case}: {other} "
                 f"and {item.path}; rename one or run them separately"
             )
-        keys[item.key] = item.path
+        keys[folded] = (item.key, item.path)
         unique.append(item)
     return unique
 
