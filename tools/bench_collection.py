@@ -102,13 +102,13 @@ def throughput(args: argparse.Namespace, work: Path) -> list[tuple[str, int, flo
     ]
     rows = []
     for name, options in configs:
-        if args.only and not re.search(args.only, name):
+        if args.only and not re.search(args.only, name, re.I):
             continue
         out = work / f"out-{len(rows)}"
         seconds, _ = run_cli(["decompose", str(photos), "-o", str(out), *options, *extra])
         rows.append((name, args.count, seconds))
         print(f"  {name}: {seconds:.1f} s", file=sys.stderr)
-    if not args.only or re.search(args.only, "dask"):
+    if not args.only or re.search(args.only, "Dask LocalCluster", re.I):
         from distributed import LocalCluster
 
         with LocalCluster(
