@@ -100,7 +100,7 @@ class VideoOptions:
     temporal_norm: str = "l2"
     temporal_weight: float | None = None
     warm_start: bool = True
-    later_iterations: int = 3
+    later_iterations: int = 2
     init_median: int = 3
     target_sigma: float = 0.0
     match_scale: bool = True
