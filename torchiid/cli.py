@@ -21,7 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from torchiid.commands.decompose import add_parameter_options
-from torchiid.core.exceptions import TorchiidError
+from torchiid.core.exceptions import TorchiidError, one_line
 
 __all__ = ["main", "build_parser"]
 
@@ -245,14 +245,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return handlers[args.command](args)
     except TorchiidError as exc:
-        print(f"torchiid: error: {_one_line(str(exc))}", file=sys.stderr)
+        print(f"torchiid: error: {one_line(str(exc))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("torchiid: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # noqa: BLE001 - a one-line report, the traceback with -v
         print(
-            f"torchiid: error: internal error ({type(exc).__name__}: {_one_line(str(exc))}); "
+            f"torchiid: error: internal error ({type(exc).__name__}: {one_line(str(exc))}); "
             "rerun with --verbose for the traceback",
             file=sys.stderr,
         )
@@ -265,10 +265,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
-
-
-def _one_line(text: str) -> str:
-    return " ".join(text.split())
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -39,7 +39,14 @@ from pathlib import Path
 from typing import Any
 
 from torchiid.baselines.retinex import retinex_decomposition
-from torchiid.core.exceptions import ConvergenceWarning, ImageError, ModelError, TorchiidError
+from torchiid.core.exceptions import (
+    ConvergenceWarning,
+    ImageError,
+    ModelError,
+    TorchiidError,
+    describe_error,
+    one_line,
+)
 from torchiid.core.stats import image_quantile
 from torchiid.io import load_image, load_mask, save_image
 from torchiid.io.layers import OutputError, OutputSet, layer_file_names, write_layers
@@ -223,29 +230,9 @@ def output_names(stem: str, settings: Any, params: Parameters) -> list[str]:
     return names
 
 
-def _one_line(text: str) -> str:
-    return " ".join(text.split())
-
-
-def _describe(exc: BaseException) -> str:
-    if isinstance(exc, TorchiidError):
-        msg = _one_line(str(exc))
-    elif isinstance(exc, OSError):
-        where = f" {exc.filename}" if exc.filename else ""
-        msg = f"cannot access{where} ({exc.strerror or _one_line(str(exc))})"
-    elif isinstance(exc, (RuntimeError, MemoryError)):
-        msg = f"{type(exc).__name__}: {_one_line(str(exc))}"
-    else:
-        msg = (
-            f"internal error ({type(exc).__name__}: {_one_line(str(exc))}); "
-            "rerun with --verbose for the traceback"
-        )
-    return msg
-
-
 def error_message(path: str | os.PathLike, exc: BaseException) -> str:
     """One line naming the input and the problem."""
-    msg = _describe(exc)
+    msg = describe_error(exc)
     return msg if str(path) in msg else f"{path}: {msg}"
 
 
@@ -292,7 +279,7 @@ def worker_state(settings: RunSettings) -> WorkerState:
             try:
                 state = _new_state(settings)
             except Exception as exc:  # noqa: BLE001 - whatever it is, no image can run
-                raise SetupError(f"cannot set up the run: {_describe(exc)}") from exc
+                raise SetupError(f"cannot set up the run: {describe_error(exc)}") from exc
             _STATES[key] = state
     return state
 
@@ -502,7 +489,7 @@ def process_image(
         try:
             state = worker_state(settings)
         except SetupError as exc:  # not the image's fault: an "error", tried again
-            result.message = f"{job.path}: not processed: {_one_line(str(exc))}"
+            result.message = f"{job.path}: not processed: {one_line(str(exc))}"
             result.failure = "error"
             result.seconds = time.perf_counter() - t0
             return result

@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 from torchiid.core.exceptions import TorchiidError
+from torchiid.io.layers import make_folders, remove_empty_folders
 
 __all__ = ["LOCK_NAME", "FolderBusyError", "OutputLock"]
 
@@ -89,18 +90,7 @@ class OutputLock:
 
     def acquire(self) -> None:
         """Take the lock, or raise :class:`FolderBusyError`."""
-        missing = []
-        folder = self.out
-        while not folder.exists() and folder != folder.parent:
-            missing.append(folder)
-            folder = folder.parent
-        try:
-            self.out.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise TorchiidError(
-                f"{self.out}: cannot create the output folder ({exc.strerror or exc})"
-            ) from None
-        self._created = [d for d in missing if d.is_dir()]
+        self._created = make_folders(self.out)
         try:
             self._acquire()
         except BaseException:
@@ -185,11 +175,7 @@ class OutputLock:
         self._remove_created()
 
     def _remove_created(self) -> None:
-        for folder in self._created:  # innermost first
-            try:
-                folder.rmdir()
-            except OSError:
-                break
+        remove_empty_folders(self._created)
         self._created = []
 
     @property

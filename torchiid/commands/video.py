@@ -13,7 +13,13 @@ from typing import Any
 
 from torchiid.commands.decompose import add_parameter_options, params_from_args
 from torchiid.core.device import resolve_device
-from torchiid.core.exceptions import ImageError, ParameterError, TorchiidError
+from torchiid.core.exceptions import (
+    ImageError,
+    ParameterError,
+    TorchiidError,
+    describe_error,
+    one_line,
+)
 from torchiid.eval.results import load_layer
 from torchiid.eval.video import evaluate_video, frame_number, occlusion_index
 from torchiid.io import load_image, load_mask
@@ -145,23 +151,9 @@ def options_from_args(args: argparse.Namespace) -> VideoOptions:
     )
 
 
-def _one_line(text: str) -> str:
-    return " ".join(text.split())
-
-
 def _error_message(where: str, exc: Exception) -> str:
     """One line naming the frame and the problem."""
-    if isinstance(exc, TorchiidError):
-        msg = _one_line(str(exc))
-    elif isinstance(exc, OSError):
-        msg = f"cannot access {exc.filename or ''} ({exc.strerror or _one_line(str(exc))})"
-    elif isinstance(exc, (RuntimeError, MemoryError)):
-        msg = f"{type(exc).__name__}: {_one_line(str(exc))}"
-    else:
-        msg = (
-            f"internal error ({type(exc).__name__}: {_one_line(str(exc))}); "
-            "rerun with --verbose for the traceback"
-        )
+    msg = describe_error(exc)
     return msg if where in msg else f"{where}: {msg}"
 
 
@@ -354,7 +346,7 @@ def run_decompose_video(args: argparse.Namespace) -> int:
                 preview.commit()
             except TorchiidError as exc:
                 failures += 1
-                say(f"torchiid: error: {_one_line(str(exc))}")
+                say(f"torchiid: error: {one_line(str(exc))}")
     except KeyboardInterrupt:
         bar.close()
         if preview is not None:
@@ -370,7 +362,7 @@ def run_decompose_video(args: argparse.Namespace) -> int:
     except TorchiidError as exc:  # the video stream itself broke: nothing more to read
         bar.close()
         failures += 1
-        say(f"torchiid: error: {_one_line(str(exc))}")
+        say(f"torchiid: error: {one_line(str(exc))}")
         if preview is not None:
             preview.discard()
     finally:
@@ -498,7 +490,7 @@ def run_eval_video(args: argparse.Namespace) -> int:
                     )
                 except TorchiidError as exc:
                     failures += 1
-                    bar.write(f"torchiid: error: {_one_line(str(exc))}", file=sys.stderr)
+                    bar.write(f"torchiid: error: {one_line(str(exc))}", file=sys.stderr)
             prev = current
     finally:
         source.close()

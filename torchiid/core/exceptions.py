@@ -14,6 +14,8 @@ __all__ = [
     "ParameterError",
     "ModelError",
     "ConvergenceWarning",
+    "one_line",
+    "describe_error",
 ]
 
 
@@ -39,3 +41,28 @@ class ModelError(TorchiidError):
 
 class ConvergenceWarning(UserWarning):
     """An iterative solver stopped before reaching its tolerance."""
+
+
+def one_line(text: str) -> str:
+    """``text`` with every run of whitespace (newlines included) made one space."""
+    return " ".join(text.split())
+
+
+def describe_error(exc: BaseException) -> str:
+    """A one-line description of ``exc`` for a user (without the file it concerns).
+
+    torchiid's own errors say what is wrong in their message; a file-system error says which
+    file and why; out-of-memory and torch's runtime errors keep their type; anything else is
+    an internal error, and the user is told how to get the traceback.
+    """
+    if isinstance(exc, TorchiidError):
+        return one_line(str(exc))
+    if isinstance(exc, OSError):
+        where = f" {exc.filename}" if exc.filename else ""
+        return f"cannot access{where} ({exc.strerror or one_line(str(exc))})"
+    if isinstance(exc, (RuntimeError, MemoryError)):
+        return f"{type(exc).__name__}: {one_line(str(exc))}"
+    return (
+        f"internal error ({type(exc).__name__}: {one_line(str(exc))}); "
+        "rerun with --verbose for the traceback"
+    )

@@ -84,6 +84,8 @@ __all__ = [
     "OutputSet",
     "OutputError",
     "layer_file_names",
+    "make_folders",
+    "remove_empty_folders",
     "write_layers",
     "srgb8_from_linear",
 ]
@@ -153,6 +155,35 @@ class OutputError(TorchiidError):
 
 def _why(exc: OSError) -> str:
     return exc.strerror or " ".join(str(exc).split()) or type(exc).__name__
+
+
+def make_folders(folder: Path) -> list[Path]:
+    """Create ``folder`` and its missing parents; returns the folders it created, innermost first.
+
+    Raises:
+        OutputError: the folder cannot be created (the message names it and says why).
+    """
+    missing = []
+    here = folder
+    while not here.exists() and here != here.parent:
+        missing.append(here)
+        here = here.parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{folder}: cannot create the output folder ({_why(exc)})") from None
+    finally:
+        created = [d for d in missing if d.is_dir()]
+    return created
+
+
+def remove_empty_folders(created: list[Path]) -> None:
+    """Remove folders made by :func:`make_folders` (innermost first) while they are empty."""
+    for folder in created:
+        try:
+            folder.rmdir()
+        except OSError:
+            break
 
 
 _HELD = (signal.SIGINT, signal.SIGTERM)
@@ -225,19 +256,7 @@ class OutputSet:
             self.discard()
 
     def _start(self) -> Path:
-        missing = []
-        folder = self.out
-        while not folder.exists() and folder != folder.parent:
-            missing.append(folder)
-            folder = folder.parent
-        try:
-            self.out.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise OutputError(
-                f"{self.out}: cannot create the output folder ({_why(exc)})"
-            ) from None
-        finally:
-            self._created = [d for d in missing if d.is_dir()]
+        self._created = make_folders(self.out)
         try:
             self._tmp = Path(tempfile.mkdtemp(prefix=f".torchiid-{self.label}-", dir=self.out))
             (self._tmp / "new").mkdir()
@@ -311,11 +330,7 @@ class OutputSet:
         """Remove the temporary files, and the folders the set created if they are empty."""
         with _signals_held():
             self._remove_tmp()
-            for folder in self._created:  # innermost first
-                try:
-                    folder.rmdir()
-                except OSError:
-                    break
+            remove_empty_folders(self._created)
             self._created = []
 
     def _remove_tmp(self) -> None:
