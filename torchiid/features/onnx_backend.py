@@ -250,6 +250,12 @@ class OnnxFeatureExtractor:
     Shape:
         ``(B, 3, H, W)`` sRGB in ``[0, 1]`` -> ``(B, 1280, ceil(H/32), ceil(W/32))``; the
         output has the input's dtype and device (computed in float32).
+
+    Memory: onnxruntime's CPU arena keeps the largest activation buffers of a run (about
+    0.5 GB for the 1024x768 pass of a 512x384 photo's shared-mode features) for the next one.
+    By default each call shrinks it at its end, so that memory is not held through the
+    solves that follow Stage 0 (the session and its weights stay cached); a loop of calls
+    passes ``release_memory=False`` to all but its last.
     """
 
     def __init__(
@@ -274,10 +280,19 @@ class OnnxFeatureExtractor:
         self.session = _session(
             str(self.path), file_sha256(self.path), self.providers, self.threads
         )
+        self._shrink = ort.RunOptions()
+        self._shrink.add_run_config_entry("memory.enable_memory_arena_shrinkage", "cpu:0")
 
-    def __call__(self, image: torch.Tensor) -> torch.Tensor:
-        """Feature map of an sRGB batch; see the class docstring."""
+    def __call__(self, image: torch.Tensor, *, release_memory: bool = True) -> torch.Tensor:
+        """Feature map of an sRGB batch; see the class docstring.
+
+        Args:
+            image: ``(B, 3, H, W)`` sRGB in ``[0, 1]``.
+            release_memory: shrink onnxruntime's CPU arena at the end of the run (the
+                values are the same either way).
+        """
         check_image(image, "image", channels=3, nonnegative=False)
         x = np.ascontiguousarray(image.detach().to("cpu", torch.float32).numpy())
-        (out,) = self.session.run([OUTPUT_NAME], {INPUT_NAME: x})
+        options = self._shrink if release_memory else None
+        (out,) = self.session.run([OUTPUT_NAME], {INPUT_NAME: x}, options)
         return torch.from_numpy(out).to(device=image.device, dtype=image.dtype)

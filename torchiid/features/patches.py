@@ -169,9 +169,15 @@ def _crop(srgb: torch.Tensor, grid: PatchGrid, feature_map, batch_size: int) -> 
     patches = srgb[:, :, rows[:, :, None], cols[:, None, :]]  # (B, 3, N, size, size)
     patches = patches.permute(0, 2, 1, 3, 4).reshape(-1, 3, size, size)
     out = []
-    for chunk in patches.split(batch_size):
+    chunks = patches.split(batch_size)
+    for i, chunk in enumerate(chunks):
         x = F.interpolate(chunk, size=(CROP_SIZE, CROP_SIZE), mode="bilinear", align_corners=False)
-        out.append(feature_map(x).mean(dim=(-2, -1)))
+        if isinstance(feature_map, OnnxFeatureExtractor):
+            # onnxruntime keeps its arena between the chunks and gives it back after the last
+            fmap = feature_map(x, release_memory=i == len(chunks) - 1)
+        else:
+            fmap = feature_map(x)
+        out.append(fmap.mean(dim=(-2, -1)))
     return torch.cat(out).reshape(bsz, len(grid), FEATURE_DIM)
 
 
