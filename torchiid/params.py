@@ -102,11 +102,17 @@ class Parameters:
             (``(0.1·L/100, a/220, b/220)``, an earlier reading with 5–6× wider weights under
             which the local term washes out thin texture and v7 loses to v4 on MIT); see
             :mod:`torchiid.priors.reflectance_terms`.
+        luminance_weight: weight of ``L`` in ``r̄`` (``None``: that of ``colour_weights``,
+            0.5 for ``"bi"``); larger values keep the local terms from merging neighbours that
+            differ mainly in lightness (same-hue print on its background).
         bregman_iter: outer Split-Bregman iterations per stage.
         bregman_cg_iter: CG iterations of each Split-Bregman ``z`` step (an inexact solve; the
             Bregman updates absorb the error, Goldstein & Osher use one Gauss–Seidel sweep).
         bregman_tol: relative change of ``z`` at which Split-Bregman stops.
         bregman_cg_tol: relative residual at which each ``z`` step's CG stops.
+        bregman_warm_state: start each alternation's Split-Bregman from the previous
+            alternation's Bregman variable (the dual of the local term) instead of zero; the
+            minimiser is the same, it is reached in fewer iterations.
         shading_floor: smallest shading value (and floor of ``Σ_c R_c`` in the gray-shading
             ratio); keeps ``R = I / S`` finite.
 
@@ -180,10 +186,12 @@ class Parameters:
     t_g: float = 0.0
     window: int = 11
     colour_weights: str = "bi"
+    luminance_weight: float | None = None
     bregman_iter: int = 2
     bregman_cg_iter: int = 3
     bregman_tol: float = 1e-3
     bregman_cg_tol: float = 1e-3
+    bregman_warm_state: bool = False
     shading_floor: float = 1e-4
     converge: bool = False
     # iterations
@@ -389,10 +397,12 @@ class Parameters:
             t_g=self.t_g,
             window=self.window,
             colour_weights=self.colour_weights,
+            luminance_weight=self.luminance_weight,
             tol=self.bregman_tol,
             max_outer=self.bregman_iter,
             cg_tol=self.bregman_cg_tol,
             cg_max_iter=self.bregman_cg_iter,
+            warm_state=self.bregman_warm_state,
             track_objective=False,
             eps=self.shading_floor,
         )
@@ -509,7 +519,11 @@ PRESETS: dict[str, dict[str, Any]] = {
     # Split-Bregman until z changes by less than 5e-5 per iteration (on MIT's panther: Eq. 12's
     # objective within 1% of its minimum). theta is only the splitting penalty (the minimiser
     # does not depend on it): 2.5 gets there in ~80 iterations where the paper's 40 needs ~350.
-    # The caps are safety caps (a ConvergenceWarning if hit). Minutes per photo on a CPU.
+    # Each alternation's Split-Bregman starts from the previous one's Bregman variable (same
+    # minimiser, 10-45% fewer iterations in alternations 2-5). The caps are safety caps (a
+    # ConvergenceWarning if hit). About half a minute per 512 px photo on 2 CPU cores.
+    # tau 1.1 (the paper's 1.2 re-tuned for converged solves, where each alternation reaches
+    # its minimum and the weight drift compounds): MIT 0.0234 -> 0.0229, 6 of 10 objects better.
     "converged": {
         "converge": True,
         "shading_preconditioner": "multigrid",
@@ -520,6 +534,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "bregman_cg_iter": 5,
         "bregman_tol": 5e-5,
         "bregman_cg_tol": 1e-6,
+        "bregman_warm_state": True,
+        "tau": 1.1,
     },
 }
 

@@ -252,6 +252,10 @@ class StencilL1Term(_L1Term):
         state: optional storage ``(B, C, K, H, W)`` for the Bregman variable of a solve that
             starts from the zero state (its contents are overwritten, never read); reusing one
             buffer across solves avoids faulting in fresh memory every time.
+        warm: ``state`` holds a Bregman variable to start from (e.g. the previous solve's on
+            the same image; entries of pairs leaving the image are never read): Split-Bregman
+            then starts with the update ``b ← clamp(W M z + b, −λ, λ)`` from it instead of from
+            the zero state (:attr:`initial_state`).
     """
 
     def __init__(
@@ -261,13 +265,22 @@ class StencilL1Term(_L1Term):
         *,
         zero_invalid: bool = True,
         state: torch.Tensor | None = None,
+        warm: bool = False,
     ) -> None:
+        if warm and state is None:
+            raise ParameterError("warm=True needs a state to start from")
         self.stencil = stencil
         if zero_invalid:
             weights = weights * stencil.valid.to(device=weights.device, dtype=weights.dtype)
         self.weights = weights
         self._w2 = self.weights.square()
         self.state = state
+        self.warm = warm
+
+    @property
+    def initial_state(self) -> torch.Tensor | None:
+        """The Bregman variable Split-Bregman starts from (``None``: the zero state)."""
+        return self.state if self.warm else None
 
     def init_state(self, z: torch.Tensor) -> torch.Tensor:
         """Zero Bregman variable ``(B, C, K, H, W)``."""

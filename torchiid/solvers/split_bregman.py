@@ -19,7 +19,8 @@ gives the images' one-by-one results.
 
 Terms are duck-typed (see :mod:`torchiid.priors.reflectance_terms`):
 ``bregman_step(z, b, λ, with_l1) -> (b, rhs, l1)`` (``b=None``: the zero state),
-``normal_matvec(z)``, ``normal_diagonal()``, ``l1(z)``.
+``normal_matvec(z)``, ``normal_diagonal()``, ``l1(z)``; optionally ``initial_state`` (a
+Bregman variable to start from instead of the zero state, updated in place).
 """
 
 from __future__ import annotations
@@ -134,7 +135,8 @@ def split_bregman(
                 obj = obj + g * l1
         return rhs, obj
 
-    states: list[torch.Tensor | None] = [None] * len(active_terms)  # None: the zero state
+    # None: the zero state; a term's initial_state (e.g. the previous alternation's) warm-starts
+    states: list[torch.Tensor | None] = [getattr(t, "initial_state", None) for t, _ in active_terms]
     rhs, obj = bregman(z, states)
     objective = [obj] if track_objective else None
     outer = torch.zeros(bsz, dtype=torch.long, device=rho.device)

@@ -327,6 +327,10 @@ class ReflectanceOptions:
         cg_tol: CG tolerance of each ``z`` step.
         cg_max_iter: CG iteration cap of each ``z`` step.
         merge_stencil_terms: solve ``A`` and ``B`` as one exactly equivalent term.
+        warm_state: start each solve's Bregman variable of the local term from the previous
+            solve's on the same image (through the :class:`ReflectanceCache`), clipped to the
+            new threshold: Split-Bregman is ADMM, which converges from any start, and the
+            previous alternation's dual is close to the next one's.
         track_objective: record Eq. 12's value after every Bregman iteration.
         eps: floor of ``Σ_c R_c`` in the shading ratio.
     """
@@ -343,6 +347,7 @@ class ReflectanceOptions:
     cg_tol: float = 1e-3
     cg_max_iter: int = 5
     merge_stencil_terms: bool = True
+    warm_state: bool = False
     track_objective: bool = True
     eps: float = 1e-4
 

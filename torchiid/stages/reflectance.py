@@ -109,10 +109,13 @@ class ReflectanceCache:
     Attributes:
         semantic: (key of the inputs, ``(B, K, H, W)`` factor) or ``None``.
         hits: how many computations were skipped.
+        state_valid: the storage holds the last solve's Bregman variable of the local term
+            (what ``ReflectanceOptions.warm_state`` starts the next solve from).
     """
 
     semantic: tuple[InputKey, torch.Tensor] | None = None
     hits: int = 0
+    state_valid: bool = False
     _state: torch.Tensor | None = None
 
     def state_buffer(self, like: torch.Tensor, num_offsets: int) -> torch.Tensor:
@@ -122,6 +125,7 @@ class ReflectanceCache:
         st = self._state
         if st is None or st.shape != shape or st.dtype != like.dtype or st.device != like.device:
             self._state = st = like.new_empty(shape)
+            self.state_valid = False
         return st
 
 
@@ -272,10 +276,13 @@ def build_reflectance_terms(
         gl, gm = weights.gamma_l, weights.gamma_m
         merged = merged_stencil_affinity(rbar, e_g, stencil, o.t, gl, gm, mask)
         state = None if cache is None else cache.state_buffer(rho, stencil.num_offsets)
+        warm = o.warm_state and cache is not None and cache.state_valid
         terms["A+B"] = (
             float(gl + gm),
-            StencilL1Term(stencil, merged, zero_invalid=False, state=state),
+            StencilL1Term(stencil, merged, zero_invalid=False, state=state, warm=warm),
         )
+        if cache is not None:
+            cache.state_valid = False  # valid again once the solve has written it
     elif use_a or use_b:
         v_l = stencil_affinity(rbar, stencil, o.t, mask)
         if use_a:
@@ -347,6 +354,8 @@ def solve_reflectance(
         track_objective=o.track_objective,
     )
     t5 = time.perf_counter()
+    if cache is not None and "A+B" in built.terms and sol.outer_iterations.max() > 0:
+        cache.state_valid = True
     refl = sol.z.clamp_min(0.0)
     if mask is not None:
         refl = torch.where(mask, refl, rho)

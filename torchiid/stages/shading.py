@@ -286,6 +286,62 @@ def _multigrid(kind: str, system: SumQuadratic, extra: torch.Tensor, mask: torch
     return GalerkinMultigrid.from_system(system, extra, mask)
 
 
+@dataclass(frozen=True)
+class _Float64Solve:
+    """What :func:`_solve_in_float64` hands back (``x`` in the caller's dtype)."""
+
+    x: torch.Tensor
+    iterations: int
+    residual: torch.Tensor
+    converged: bool
+    seconds: float
+
+
+def _solve_in_float64(
+    problem: ShadingProblem,
+    weights: ShadingWeights,
+    options: ShadingOptions,
+    x: torch.Tensor,
+    start: torch.Tensor,
+    matvec: Callable[[torch.Tensor], torch.Tensor],
+    rhs: torch.Tensor,
+) -> _Float64Solve | None:
+    """Solve the same shading system with every tensor in float64.
+
+    Warm-started from the better of ``x`` and ``start`` (by the float32 residual); ``None``
+    where float64 is not available (MPS).
+    """
+    if problem.image.device.type == "mps":
+        return None
+    t0 = time.perf_counter()
+    rnorm = rhs.flatten(1).norm(dim=1).clamp_min(1e-30)
+
+    def residual(v: torch.Tensor) -> torch.Tensor:
+        return torch.nan_to_num((rhs - matvec(v)).flatten(1).norm(dim=1) / rnorm, nan=math.inf)
+
+    pick = residual(x) <= residual(start)
+    x0 = torch.where(pick.view(-1, 1, 1, 1), torch.nan_to_num(x), start)
+    changes = {
+        f.name: v.to(torch.float64)
+        for f in dataclasses.fields(problem)
+        if torch.is_tensor(v := getattr(problem, f.name)) and v.is_floating_point()
+    }
+    sub = solve_shading(
+        dataclasses.replace(problem, **changes),
+        weights,
+        options.replace(warm_max_iter=0, warn=False),
+        x0=x0.to(torch.float64),
+    )
+    d = sub.diagnostics
+    x64 = sub.log_shading.to(x.dtype)
+    logger.info("shading solve redone in float64: %d iterations, residual %s",
+                d.iterations, d.residual.tolist())  # fmt: skip
+    # its residual as float64 measures it: the float32 product is what cannot resolve it
+    return _Float64Solve(
+        x64, d.iterations, d.residual.to(x.dtype), d.converged, time.perf_counter() - t0
+    )
+
+
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
@@ -500,15 +556,44 @@ def solve_shading(
             max_iter=min(max_iter - res.iterations, _MULTIGRID_BUDGET), warn=False,
         )  # fmt: skip
         res = dataclasses.replace(more, iterations=res.iterations + more.iterations)
+    if not res.converged and o.preconditioner != "jacobi" and dt == torch.float32:
+        # the solve to tolerance failed in float32: the products of a badly scaled system
+        # (near-binary Retinex weights, a matting base that a converged L1 stage made almost
+        # flat) lose more than the tolerance to round-off, so neither multigrid nor Jacobi gets
+        # there (MIT's box, alternation 4 of the converged preset: multigrid, then 1382 Jacobi
+        # iterations ending at a relative residual of 0.92). The same system in float64 takes
+        # 12 multigrid iterations; redo it there, from the better iterate
+        more = _solve_in_float64(problem, weights, o, res.x, start, matvec, rhs)
+        if more is not None:
+            res = dataclasses.replace(more, iterations=res.iterations + more.iterations)
+            times["float64"] = more.seconds
     if o.preconditioner != "jacobi" and not res.converged and res.iterations < max_iter:
-        # a multigrid that stagnates (float32 round-off on a very ill-conditioned system, e.g.
-        # the matting Laplacian of an exactly piecewise-constant base image) or breaks down:
-        # finish with the always-SPD Jacobi preconditioner from the current iterate
+        # a multigrid that stagnates (round-off on a very ill-conditioned system, e.g. the
+        # matting Laplacian of an exactly piecewise-constant base image) or breaks down, where
+        # float64 did not help or is not available: finish with the always-SPD Jacobi
+        # preconditioner from the current iterate
         more = pcg(
             matvec, rhs, x0=res.x, precond=anchored.jacobi, tol=o.tol,
             max_iter=max_iter - res.iterations, warn=False,
         )  # fmt: skip
         res = dataclasses.replace(more, iterations=res.iterations + more.iterations)
+    if not res.converged:
+        # a solve that broke down (the float32 operator not positive definite on a near-flat
+        # matting base, seen in late alternations of converged runs) can end farther from the
+        # solution than where it started: keep the start for those images, never a worse answer
+        r0 = rhs - matvec(start)
+        rnorm = rhs.flatten(1).norm(dim=1).clamp_min(1e-30)
+        res0 = r0.flatten(1).norm(dim=1) / rnorm
+        worse = ~(res.residual <= res0)  # NaN counts as worse
+        if bool(worse.any()):
+            logger.info(
+                "shading solve ended with relative residual %s above its start's %s; "
+                "keeping the start",
+                res.residual.tolist(),
+                res0.tolist(),
+            )
+            x = torch.where(worse.view(-1, 1, 1, 1), start, res.x)
+            res = dataclasses.replace(res, x=x, residual=torch.where(worse, res0, res.residual))
     _sync(dev)
     times["solve"] = time.perf_counter() - t0
     if cache is not None and fresh:
