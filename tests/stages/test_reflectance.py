@@ -169,8 +169,13 @@ def test_converged_preset_tolerance_puts_the_objective_near_its_minimum():
 
     s, rho, gpca = _scene()
     problem = ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels)
-    opts = Parameters.preset("converged").reflectance_options()
-    opts = ReflectanceOptions(**{**opts.__dict__, "track_objective": True})
+    preset = Parameters.preset("converged")
+    opts = ReflectanceOptions(**{**preset.reflectance_options().__dict__, "track_objective": True})
+    for weights in (preset.reflectance_weights(), W):  # the preset's gammas and the paper's
+        _objective_near_minimum(problem, weights, opts)
+
+
+def _objective_near_minimum(problem, W, opts):
     r = solve_reflectance(problem, W, opts)
     assert bool(r.solver.converged.all())
     n = int(r.solver.outer_iterations[0])
@@ -195,7 +200,7 @@ def test_warm_bregman_state_reaches_the_same_minimum_in_fewer_iterations():
     g = torch.Generator().manual_seed(5)
     rho2 = (rho * (1 + 0.05 * torch.randn(rho.shape, generator=g))).clamp(0, 1)
     nxt = problem.replace(rho=rho2)
-    w2 = W.step(1.2)
+    w2 = W.step(1.2)  # the paper's gammas (with the preset's halved ones: 49 vs 49 here)
     cache = ReflectanceCache()
     first = solve_reflectance(problem, W, warm_opts, cache=cache)
     assert cache.state_valid

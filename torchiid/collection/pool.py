@@ -32,6 +32,7 @@ import os
 import re
 import shutil
 import signal
+import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -233,10 +234,19 @@ class WorkerPool:
             daemon=True,
         )
         old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)  # inherited: see above
+        # The mask alone did not keep Ctrl-C out of a worker's start-up imports (about 1 run in
+        # 4 under load: a library thread with SIGINT unblocked took it and Python raised
+        # KeyboardInterrupt in the importing main thread). An ignored SIGINT survives exec and
+        # Python keeps it ignored at start-up, until _worker_main installs its handler; the
+        # parent goes without a SIGINT handler only for the fork and exec.
+        main = threading.current_thread() is threading.main_thread()
+        old_int = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
         try:
             with _thread_environment(self.threads):
                 process.start()
         finally:
+            if main:
+                signal.signal(signal.SIGINT, signal.SIG_DFL if old_int is None else old_int)
             signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
         child.close()
         worker = _Worker(process, parent)
