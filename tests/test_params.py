@@ -58,6 +58,8 @@ def test_partial_json_keeps_base(tmp_path):
         ({"bregman_cg_iter": 0}, "bregman_cg_iter must be > 0"),
         ({"warm_cg_max_iter": -1}, "warm_cg_max_iter must be >= 0"),
         ({"colour_weights": "narrow"}, "colour_weights must be one of bi, wide"),
+        ({"luminance_weight": -1.0}, "luminance_weight must be a number >= 0 or null"),
+        ({"luminance_weight": "high"}, "luminance_weight must be a number >= 0 or null"),
     ],
 )
 def test_invalid_values_are_named(changes, message):

@@ -289,6 +289,13 @@ class Parameters:
             "t_g",
             "t_i",
         ]
+        lw = self.luminance_weight
+        if lw is not None:
+            if isinstance(lw, bool) or not isinstance(lw, (int, float)) or not lw >= 0:
+                raise ParameterError(
+                    f"parameter luminance_weight must be a number >= 0 or null, got {lw!r}"
+                )
+            object.__setattr__(self, "luminance_weight", float(lw))
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise ParameterError(f"parameter {name} must be >= 0, got {getattr(self, name)}")

@@ -246,6 +246,7 @@ def test_a_float32_solve_that_misses_its_tolerance_is_redone_in_float64(monkeypa
     monkeypatch.setattr(stage, "_multigrid", lambda *a, **k: lambda r: r.clone())
     res = solve_shading(problem, W, opts)
     assert "float64" in res.diagnostics.times
+    assert set(res.diagnostics.terms) == {"S_c", "S_p", "S_m", "S_l"}
     assert res.diagnostics.converged and res.log_shading.dtype == torch.float32
     _, p64 = _inputs(48, 48)
     ref = solve_shading(p64, W, ShadingOptions(tol=1e-8, max_iter=5000, warn=False))

@@ -268,7 +268,9 @@ class StencilL1Term(_L1Term):
         warm: bool = False,
     ) -> None:
         if warm and state is None:
-            raise ParameterError("warm=True needs a state to start from")
+            raise ParameterError(
+                "StencilL1Term(warm=True) needs state=, the Bregman variable to start from"
+            )
         self.stencil = stencil
         if zero_invalid:
             weights = weights * stencil.valid.to(device=weights.device, dtype=weights.dtype)

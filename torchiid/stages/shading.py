@@ -56,7 +56,7 @@ from torchiid.priors.shading_terms import (
     shading_stencil,
 )
 from torchiid.solvers.multigrid import AMGPreconditioner, GalerkinMultigrid
-from torchiid.solvers.pcg import pcg
+from torchiid.solvers.pcg import PCGResult, pcg
 from torchiid.stages.config import ShadingOptions, ShadingProblem, ShadingWeights
 
 _MULTIGRID_BUDGET = 100
@@ -286,41 +286,24 @@ def _multigrid(kind: str, system: SumQuadratic, extra: torch.Tensor, mask: torch
     return GalerkinMultigrid.from_system(system, extra, mask)
 
 
-@dataclass(frozen=True)
-class _Float64Solve:
-    """What :func:`_solve_in_float64` hands back (``x`` in the caller's dtype)."""
-
-    x: torch.Tensor
-    iterations: int
-    residual: torch.Tensor
-    converged: bool
-    seconds: float
+def _relative_residual(
+    matvec: Callable[[torch.Tensor], torch.Tensor], rhs: torch.Tensor, x: torch.Tensor
+) -> torch.Tensor:
+    """``||rhs - A x|| / ||rhs||`` per image, ``(B,)``; NaN (an overflowed ``x``) as ``inf``."""
+    r = (rhs - matvec(x)).flatten(1).norm(dim=1) / rhs.flatten(1).norm(dim=1).clamp_min(1e-30)
+    return torch.nan_to_num(r, nan=math.inf)
 
 
 def _solve_in_float64(
-    problem: ShadingProblem,
-    weights: ShadingWeights,
-    options: ShadingOptions,
-    x: torch.Tensor,
-    start: torch.Tensor,
-    matvec: Callable[[torch.Tensor], torch.Tensor],
-    rhs: torch.Tensor,
-) -> _Float64Solve | None:
-    """Solve the same shading system with every tensor in float64.
+    problem: ShadingProblem, weights: ShadingWeights, options: ShadingOptions, x0: torch.Tensor
+) -> PCGResult | None:
+    """The same shading solve with every tensor in float64, from ``x0``.
 
-    Warm-started from the better of ``x`` and ``start`` (by the float32 residual); ``None``
-    where float64 is not available (MPS).
+    Returns the result in ``x0``'s dtype (its residual as float64 measures it: the float32
+    product is what cannot resolve it), or ``None`` where float64 is not available (MPS).
     """
     if problem.image.device.type == "mps":
         return None
-    t0 = time.perf_counter()
-    rnorm = rhs.flatten(1).norm(dim=1).clamp_min(1e-30)
-
-    def residual(v: torch.Tensor) -> torch.Tensor:
-        return torch.nan_to_num((rhs - matvec(v)).flatten(1).norm(dim=1) / rnorm, nan=math.inf)
-
-    pick = residual(x) <= residual(start)
-    x0 = torch.where(pick.view(-1, 1, 1, 1), torch.nan_to_num(x), start)
     changes = {
         f.name: v.to(torch.float64)
         for f in dataclasses.fields(problem)
@@ -333,12 +316,15 @@ def _solve_in_float64(
         x0=x0.to(torch.float64),
     )
     d = sub.diagnostics
-    x64 = sub.log_shading.to(x.dtype)
     logger.info("shading solve redone in float64: %d iterations, residual %s",
                 d.iterations, d.residual.tolist())  # fmt: skip
-    # its residual as float64 measures it: the float32 product is what cannot resolve it
-    return _Float64Solve(
-        x64, d.iterations, d.residual.to(x.dtype), d.converged, time.perf_counter() - t0
+    b = x0.shape[0]
+    return PCGResult(
+        x=sub.log_shading.to(x0.dtype),
+        iterations=d.iterations,
+        residual=d.residual.to(x0.dtype),
+        converged=d.converged,
+        item_iterations=torch.full((b,), d.iterations, dtype=torch.long, device=x0.device),
     )
 
 
@@ -556,6 +542,7 @@ def solve_shading(
             max_iter=min(max_iter - res.iterations, _MULTIGRID_BUDGET), warn=False,
         )  # fmt: skip
         res = dataclasses.replace(more, iterations=res.iterations + more.iterations)
+    res_start = None  # the start's relative residual, once computed
     if not res.converged and o.preconditioner != "jacobi" and dt == torch.float32:
         # the solve to tolerance failed in float32: the products of a badly scaled system
         # (near-binary Retinex weights, a matting base that a converged L1 stage made almost
@@ -563,10 +550,14 @@ def solve_shading(
         # there (MIT's box, alternation 4 of the converged preset: multigrid, then 1382 Jacobi
         # iterations ending at a relative residual of 0.92). The same system in float64 takes
         # 12 multigrid iterations; redo it there, from the better iterate
-        more = _solve_in_float64(problem, weights, o, res.x, start, matvec, rhs)
+        t1 = time.perf_counter()
+        res_start = _relative_residual(matvec, rhs, start)
+        better = _relative_residual(matvec, rhs, res.x) <= res_start
+        restart = torch.where(better.view(-1, 1, 1, 1), res.x, start)
+        more = _solve_in_float64(problem, weights, o, restart)
         if more is not None:
             res = dataclasses.replace(more, iterations=res.iterations + more.iterations)
-            times["float64"] = more.seconds
+            times["float64"] = time.perf_counter() - t1
     if o.preconditioner != "jacobi" and not res.converged and res.iterations < max_iter:
         # a multigrid that stagnates (round-off on a very ill-conditioned system, e.g. the
         # matting Laplacian of an exactly piecewise-constant base image) or breaks down, where
@@ -581,9 +572,7 @@ def solve_shading(
         # a solve that broke down (the float32 operator not positive definite on a near-flat
         # matting base, seen in late alternations of converged runs) can end farther from the
         # solution than where it started: keep the start for those images, never a worse answer
-        r0 = rhs - matvec(start)
-        rnorm = rhs.flatten(1).norm(dim=1).clamp_min(1e-30)
-        res0 = r0.flatten(1).norm(dim=1) / rnorm
+        res0 = res_start if res_start is not None else _relative_residual(matvec, rhs, start)
         worse = ~(res.residual <= res0)  # NaN counts as worse
         if bool(worse.any()):
             logger.info(
@@ -616,7 +605,7 @@ def solve_shading(
     # overflow; sigma >= dark_eps^2 keeps rho finite (<= 1 / dark_eps^2 for I <= 1)
     shading = torch.exp(s).clamp_min(o.dark_eps * o.dark_eps)
     reflectance = image / shading
-    names = tuple(k for k in times if k not in ("solve", "coarse", "preconditioner"))
+    names = tuple(k for k in times if k not in ("solve", "coarse", "preconditioner", "float64"))
     diagnostics = ShadingDiagnostics(
         iterations=res.iterations, residual=res.residual, converged=res.converged,
         times=times, terms=names,
