@@ -18,9 +18,10 @@ CONVERGED = Parameters().replace(
     cg_tol=1e-10,
     cg_max_iter=1000,
     warm_cg_max_iter=0,
+    theta=2.5,  # the converged preset's splitting penalty: the same minimum, sooner
     bregman_iter=150,
     bregman_tol=1e-6,
-    bregman_cg_iter=20,
+    bregman_cg_iter=5,
     bregman_cg_tol=1e-10,
 )
 

@@ -108,9 +108,9 @@ def _log_gradient(s: torch.Tensor, where: torch.Tensor) -> float:
 
 def test_working_resolution_matches_full_resolution_without_halos():
     s = mondrian(768, 1024, patches=16, seed=11)
-    p = Parameters.preset("default").replace(iterations=2)
+    p = Parameters.preset("default").replace(iterations=1)
     full = decompose(s.image, p.replace(max_side=0))
-    work = decompose(s.image, p.replace(max_side=512))
+    work = decompose(s.image, p.replace(max_side=512), return_iterations=True)
     assert work.working_size == (384, 512) and full.working_size == (768, 1024)
     assert work.shading.shape == (1, 1, 768, 1024)
 
@@ -118,21 +118,21 @@ def test_working_resolution_matches_full_resolution_without_halos():
         gray = refl.mean(1, keepdim=True)
         return float(local_mse(s.shading, shading) + local_mse(s.reflectance.mean(1, True), gray))
 
-    # measured: full 0.00126, working resolution 0.00124
+    # measured: full 0.00121, working resolution 0.00121
     assert lmse(work.shading, work.reflectance) <= 1.1 * lmse(full.shading, full.reflectance)
     # halo: the shading near the reflectance edges departs from the full-resolution solve
     # more than elsewhere. Plain bilinear upsampling of the same low-resolution solve is the
-    # reference that has halos (measured excess 0.017 against the guided 0.007)
+    # reference that has halos (measured excess 0.016 against the guided 0.007)
     band = _edge_band(s.labels, width=1)
-    low = decompose(F.interpolate(s.image, size=(384, 512), mode="area"), p.replace(max_side=0))
-    bilinear = F.interpolate(low.shading, size=(768, 1024), mode="bilinear", align_corners=False)
+    low = work.iterations[-1].shading  # the working-resolution solve itself
+    bilinear = F.interpolate(low, size=(768, 1024), mode="bilinear", align_corners=False)
 
     def excess(x):
         return _log_gap(x, full.shading, band) - _log_gap(x, full.shading, ~band)
 
     assert excess(work.shading) < 0.6 * excess(bilinear)
     # and no sharper shading edges along the reflectance edges than the full-resolution solve
-    # has (measured 0.0386 against 0.0407)
+    # has (measured 0.0379 against 0.0398)
     assert _log_gradient(work.shading, band) <= 1.1 * _log_gradient(full.shading, band)
 
 

@@ -1,10 +1,12 @@
 """Score parameter changes on the MIT-Berkeley objects, one JSON line per parameter set.
 
-Each argument is a JSON object of changes over ``Parameters()``; every object is decomposed
+Each argument is a JSON object of changes over ``Parameters.preset(--preset)`` (default:
+``default``); every object is decomposed
 (``diffuse.png`` under ``mask.png``) and scored with the MIT LMSE. Prints the mean, the seconds
 and the per-object scores, for tuning the energy with one parameter set for all images.
 
     python tools/tune_mit.py ../shared/data/mit-berkeley '{}' '{"lambda_l": 1.0}'
+    python tools/tune_mit.py --preset converged ../shared/data/mit-berkeley '{"t_i": 0.6}'
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("root", type=Path, help="the MIT-Berkeley folder")
     ap.add_argument("changes", nargs="+", help="JSON objects of parameter changes")
+    ap.add_argument("--preset", default="default", help="the preset the changes apply to")
     args = ap.parse_args()
     objects = sorted(p.name for p in args.root.iterdir() if (p / "diffuse.png").is_file())
     samples = {}
@@ -36,7 +39,7 @@ def main() -> None:
         samples[name] = (image, mask, refl, shading)
     for text in args.changes:
         changes = json.loads(text)
-        params = Parameters().replace(**changes)
+        params = Parameters.preset(args.preset).replace(**changes)
         t0 = time.perf_counter()
         rows = {}
         for name, (image, mask, refl, shading) in samples.items():
