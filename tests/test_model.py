@@ -1,3 +1,5 @@
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -207,7 +209,10 @@ def test_every_solve_is_reported_with_its_convergence():
     first, warm = capped.solves[0], capped.solves[2]
     assert (first.cap, warm.cap) == (5, 3) and first.iterations == 5 and not first.converged
     assert first.residual > first.tolerance and not capped.converged
-    assert "stopped at its cap of 5" in str(first)
+    assert "stopped at its cap of 5" in str(first) and first.capped
+    # a solve that stops short of its cap (a breakdown) is not reported as capped
+    short = dataclasses.replace(first, iterations=2)
+    assert not short.capped and "short of its tolerance before its cap of 5" in str(short)
     # generous caps: the shading solves reach their tolerance
     loose = decompose(img, FAST.replace(cg_max_iter=3000, warm_cg_max_iter=0, cg_tol=1e-3))
     for r in loose.solves:

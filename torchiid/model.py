@@ -94,8 +94,18 @@ class SolveReport:
     cap: int
     converged: bool
 
+    @property
+    def capped(self) -> bool:
+        """Stopped at its iteration cap before its tolerance (raising the cap may help)."""
+        return not self.converged and self.iterations >= self.cap
+
     def __str__(self) -> str:
-        state = "converged" if self.converged else f"stopped at its cap of {self.cap}"
+        if self.converged:
+            state = "converged"
+        elif self.capped:
+            state = f"stopped at its cap of {self.cap}"
+        else:  # a breakdown or no further progress: a larger cap would not help
+            state = f"stopped short of its tolerance before its cap of {self.cap} (no progress)"
         return (
             f"{self.stage} {self.alternation}: {self.iterations} iterations, "
             f"residual {self.residual:.2g} (tol {self.tolerance:g}), {state}"
@@ -485,9 +495,18 @@ def decompose(
     capped = [r for r in solves if not r.converged]
     if params.converge and capped:
         worst = max(capped, key=lambda r: r.residual / r.tolerance)
+        at_cap = sum(r.capped for r in capped)
+        advice = []
+        if at_cap:
+            advice.append(f"{at_cap} at their safety caps: raise cg_max_iter / bregman_iter")
+        if at_cap < len(capped):
+            advice.append(
+                f"{len(capped) - at_cap} could make no further progress (round-off or a solver "
+                "breakdown; the torchiid logger says which)"
+            )
         warnings.warn(
-            f"{len(capped)} of {len(solves)} solves stopped at their safety caps before their "
-            f"tolerance (worst: {worst}); raise cg_max_iter / bregman_iter",
+            f"{len(capped)} of {len(solves)} solves stopped before their tolerance "
+            f"(worst: {worst}); {'; '.join(advice)}",
             ConvergenceWarning,
             stacklevel=3,  # the caller of decompose (under torch's no_grad wrapper)
         )

@@ -422,14 +422,15 @@ def _capped_note(path: str, stem: str, solves: list, converge: bool = False) -> 
     if not capped:
         return None
     worst = max(capped, key=lambda r: r.residual / r.tolerance)
-    why = (
-        "safety caps: raise cg_max_iter / bregman_iter"
-        if converge
-        else "the default preset caps them on purpose"
-    )
+    if not converge:
+        why = "the default preset caps them on purpose"
+    elif all(r.iterations >= r.cap for r in capped):
+        why = "safety caps: raise cg_max_iter / bregman_iter"
+    else:
+        why = "some could make no further progress, which larger caps would not change"
     return (
-        f"{path}: {len(capped)} of {len(solves)} solver runs stopped at their iteration caps "
-        f"before their tolerance ({why}; largest residual "
+        f"{path}: {len(capped)} of {len(solves)} solver runs stopped before their tolerance "
+        f"({why}; largest residual "
         f"{worst.residual:.1g} against {worst.tolerance:g}); details in {stem}-info.json"
     )
 
