@@ -1,17 +1,25 @@
-"""Suite-wide set-up: one thread per process when pytest-xdist runs the suite (``-n 2``).
+"""Suite-wide set-up: Ctrl-C that can be delivered, and one thread per xdist worker.
 
-Two xdist workers on a 2-core machine, each with torch's and OpenMP's default of one thread
-per core, oversubscribe the cores (measured: 205 s against 111 s with one thread each). Each
-worker, and every process a test starts from it (CLI runs, collection workers), uses one.
+* A shell that starts the suite in the background (``nohup ... &``, some CI runners) leaves
+  SIGINT ignored, and every process inherits that, so the tests of Ctrl-C (interrupted runs,
+  workers, video frames) could not interrupt anything. The suite restores Python's default
+  handler; the processes it starts then get the default disposition too.
+* Two xdist workers (``-n 2``) on a 2-core machine, each with torch's and OpenMP's default of
+  one thread per core, oversubscribe the cores (measured: 205 s against 111 s with one thread
+  each). Each worker, and every process a test starts from it (CLI runs, collection workers),
+  uses one.
 """
 
 from __future__ import annotations
 
 import os
+import signal
 
 
 def pytest_configure(config):
-    """In an xdist worker: one torch / OpenMP thread, for it and for the processes it starts."""
+    """Deliverable SIGINT; in an xdist worker, one torch / OpenMP thread."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     if os.environ.get("PYTEST_XDIST_WORKER"):
         os.environ["OMP_NUM_THREADS"] = "1"
         import torch

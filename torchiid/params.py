@@ -535,7 +535,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # stopping did not; 0.0229 -> 0.0226, 7 of 10 better; a quarter: 0.0225, 5 of 10).
     # Then the shading priors (stop 20): t_i 1.0 (S_l no longer ties same-hue neighbours whose
     # brightness differs by much more than e-fold, i.e. print: teabag2 0.0274 -> 0.0218) with
-    # lambda_m halved (S_m alone at half: mean unchanged, 7 of 10 objects better): 0.0226 ->
+    # lambda_m halved (S_m alone at half: mean unchanged, 8 of 10 objects better): 0.0226 ->
     # 0.0221, 7 of 10 better.
     "converged": {
         "converge": True,
