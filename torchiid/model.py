@@ -502,7 +502,8 @@ def decompose(
         if at_cap < len(capped):
             advice.append(
                 f"{len(capped) - at_cap} could make no further progress (round-off or a solver "
-                "breakdown; the torchiid logger says which)"
+                "breakdown, which larger caps would not change; the 'torchiid' logger at INFO "
+                "level, or the CLI's --verbose, says which)"
             )
         warnings.warn(
             f"{len(capped)} of {len(solves)} solves stopped before their tolerance "

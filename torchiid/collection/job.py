@@ -424,10 +424,13 @@ def _capped_note(path: str, stem: str, solves: list, converge: bool = False) -> 
     worst = max(capped, key=lambda r: r.residual / r.tolerance)
     if not converge:
         why = "the default preset caps them on purpose"
-    elif all(r.iterations >= r.cap for r in capped):
+    elif all(r.capped for r in capped):
         why = "safety caps: raise cg_max_iter / bregman_iter"
     else:
-        why = "some could make no further progress, which larger caps would not change"
+        why = (
+            "some could make no further progress, which larger caps would not change; "
+            "--verbose says which"
+        )
     return (
         f"{path}: {len(capped)} of {len(solves)} solver runs stopped before their tolerance "
         f"({why}; largest residual "
