@@ -23,7 +23,7 @@ def test_gradcheck_float64_tiny():
     params = PARAMS.replace(use_sc=False)  # one 8 px patch: no LLE neighbours
     loss = PriorLoss(params)
     priors = loss.priors(img)
-    assert set(priors.shading) == {"S_p", "S_m", "S_l"}
+    assert set(priors.shading) == {"S_p", "S_m", "S_l", "S_s"}
     g = torch.Generator().manual_seed(0)
     refl = (0.2 + 0.6 * torch.rand(1, 3, 8, 8, dtype=torch.float64, generator=g)).requires_grad_()
     shad = (0.3 + torch.rand(1, 1, 8, 8, dtype=torch.float64, generator=g)).requires_grad_()
@@ -48,12 +48,12 @@ def test_components_and_dtype():
     loss = PriorLoss(PARAMS)
     pr = loss.priors(m.image)
     parts = loss.components(m.image, m.reflectance, m.shading, pr)
-    assert set(parts) == {"reconstruction", "S_c", "S_p", "S_m", "S_l", "A", "B", "C"}
+    assert set(parts) == {"reconstruction", "S_c", "S_p", "S_m", "S_l", "S_s", "A", "B", "C"}
     assert all(v.shape == (2,) and v.dtype == torch.float32 for v in parts.values())
     total = loss(m.image, m.reflectance, m.shading, pr)
     torch.testing.assert_close(total, torch.stack(list(parts.values())).sum(0).mean())
     # the unweighted pieces
-    assert set(shading_losses(m.shading.log(), pr.shading)) == {"S_c", "S_p", "S_m", "S_l"}
+    assert set(shading_losses(m.shading.log(), pr.shading)) == {"S_c", "S_p", "S_m", "S_l", "S_s"}
     assert set(reflectance_losses(m.reflectance, pr.reflectance)) == {"A", "B", "C"}
     torch.testing.assert_close(
         reconstruction_loss(m.image, m.reflectance, m.shading), torch.zeros(2), atol=1e-8, rtol=0

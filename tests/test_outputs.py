@@ -108,7 +108,11 @@ def _log_gradient(s: torch.Tensor, where: torch.Tensor) -> float:
 
 def test_working_resolution_matches_full_resolution_without_halos():
     s = mondrian(768, 1024, patches=16, seed=11)
-    p = Parameters.preset("default").replace(iterations=1)
+    # the paper's shading weights (no S_s): their full-resolution shading steps at the
+    # reflectance edges, the hard case for the upsampling. With S_s the default's shading is
+    # almost smooth there, and plain bilinear upsampling has little halo left to compare with
+    # (excess 0.0030 bilinear against 0.0020 guided)
+    p = Parameters.preset("default").replace(iterations=1, lambda_m=0.02, lambda_s=0.0)
     full = decompose(s.image, p.replace(max_side=0))
     work = decompose(s.image, p.replace(max_side=512), return_iterations=True)
     assert work.working_size == (384, 512) and full.working_size == (768, 1024)

@@ -8,7 +8,7 @@ from torchiid.params import PRESETS, VARIANTS, Parameters
 
 def test_paper_preset_has_the_papers_values():
     p = Parameters.preset("paper")
-    assert (p.lambda_g, p.lambda_m, p.lambda_l) == (0.02, 0.02, 2.0)
+    assert (p.lambda_g, p.lambda_m, p.lambda_l, p.lambda_s) == (0.02, 0.02, 2.0, 0.0)
     assert (p.gamma_g, p.gamma_m, p.gamma_l, p.theta, p.tau) == (2.0, 20.0, 20.0, 40.0, 1.2)
     assert (p.t_c, p.t_m, p.t_b, p.t, p.iterations) == (1e-4, 0.05, 0.05, 0.05, 5)
     assert (p.patch_size, p.patch_stride, p.lle_k) == (60, 30, 10)
@@ -21,6 +21,8 @@ def test_default_preset_differs_from_paper_only_where_tuned():
         "warm_cg_max_iter",
         "bregman_iter",
         "bregman_cg_iter",
+        "lambda_m",  # re-tuned with S_s
+        "lambda_s",  # S_s is not one of the paper's priors
     }
     # the no-argument object is what decompose() does by default
     assert Parameters.preset("default") == Parameters()
@@ -95,7 +97,8 @@ def test_variants_switch_the_right_priors():
 def test_stage_configuration_carries_switches_and_schedule():
     p = Parameters()
     sw, rw = p.shading_weights(), p.reflectance_weights()
-    assert (sw.lambda_c, sw.lambda_p, sw.lambda_m, sw.lambda_l) == (0.02, 0.02, 0.02, 2.0)
+    assert (sw.lambda_c, sw.lambda_p, sw.lambda_m, sw.lambda_l) == (0.02, 0.02, 0.01, 2.0)
+    assert sw.lambda_s == 0.01
     assert (rw.gamma_l, rw.gamma_m, rw.gamma_g, rw.gamma_a) == (20.0, 20.0, 2.0, 1.0)
     # switches are zero weights
     v1 = p.variant("v1").shading_weights()
@@ -107,6 +110,7 @@ def test_stage_configuration_carries_switches_and_schedule():
     # the §3.4 schedule: global, mid-level and data x tau, local / tau, per alternation
     sw3, rw3 = p.shading_weights(3), p.reflectance_weights(3)
     assert sw3.lambda_c == pytest.approx(0.02 * 1.44) and sw3.lambda_l == pytest.approx(2 / 1.44)
+    assert sw3.lambda_s == pytest.approx(0.01 / 1.44)  # S_s is local, like S_l
     assert rw3.gamma_l == pytest.approx(20 / 1.44) and rw3.gamma_a == pytest.approx(1.44)
     assert sw.step(1.2).step(1.2) == sw3
     # every solver knob comes from Parameters

@@ -21,7 +21,7 @@ def batch():
 
 def test_every_prior_is_built_separately(batch):
     _, pr = batch
-    assert set(pr.shading) == {"S_c", "S_p", "S_m", "S_l"}
+    assert set(pr.shading) == {"S_c", "S_p", "S_m", "S_l", "S_s"}
     assert set(pr.reflectance) == {"A", "B", "C"}
     assert all(isinstance(p, ShadingPrior) and p.equation for p in pr.shading.values())
     assert all(isinstance(p, ReflectancePrior) and p.equation for p in pr.reflectance.values())

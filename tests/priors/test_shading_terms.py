@@ -9,6 +9,7 @@ from torchiid.priors.shading_terms import (
     retinex_term,
     retinex_weights,
     shading_stencil,
+    smoothness_term,
 )
 
 NBRS = [(0, 1), (1, -1), (1, 0), (1, 1)]
@@ -59,6 +60,25 @@ def test_midlevel_matches_dense():
     x = torch.randn(1, 1, h, w, dtype=torch.float64)
     torch.testing.assert_close(term.matvec(x).reshape(-1), a @ x.reshape(-1))
     torch.testing.assert_close(term.diagonal().reshape(-1), a.diagonal())
+
+
+def test_smoothness_matches_dense_8_neighbour_laplacian():
+    h, w = 5, 6
+    st = shading_stencil(h, w)
+    term = smoothness_term(st, 2, dtype=torch.float64)
+    a, _ = _dense_from_pairs(h, w, lambda *_: 1.0)
+    dense = term.to_sparse().to_dense()
+    torch.testing.assert_close(dense[: h * w, : h * w], a)
+    torch.testing.assert_close(dense[h * w :, h * w :], a)
+    assert float(dense[: h * w, h * w :].abs().max()) == 0.0  # images are independent
+    # an interior pixel has 8 neighbours, a corner 3
+    assert float(a[w + 1, w + 1]) == 8.0 and float(a[0, 0]) == 3.0
+    x = torch.randn(2, 1, h, w, dtype=torch.float64)
+    torch.testing.assert_close(term.matvec(x).reshape(-1), dense @ x.reshape(-1))
+    ones = torch.ones(2, 1, h, w, dtype=torch.float64)
+    assert float(term.matvec(ones).abs().max()) < 1e-12
+    with pytest.raises(ParameterError, match="batch"):
+        smoothness_term(st, 0)
 
 
 def test_retinex_matches_dense_and_formula():
@@ -119,6 +139,7 @@ def test_mask_zeroes_pairs_leaving_it():
     for term in (
         retinex_term(img, st, t_c=1.0, mask=mask),
         midlevel_term(torch.ones(1, 4, 5, 5), st, mask=mask),
+        smoothness_term(st, 1, mask=mask),
     ):
         a = term.to_sparse().to_dense()
         assert float(a[12].abs().max()) == 0.0

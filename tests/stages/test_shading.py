@@ -254,3 +254,35 @@ def test_a_float32_solve_that_misses_its_tolerance_is_redone_in_float64(monkeypa
     # the default (Jacobi) route never switches: its caps are deliberate
     quick = solve_shading(problem, W, ShadingOptions(max_iter=5, warn=False))
     assert "float64" not in quick.diagnostics.times and not quick.diagnostics.converged
+
+
+def test_smoothness_decides_the_shading_step_across_a_chromaticity_edge():
+    # green | white under light that brightens smoothly to the right: S_l cuts every pair across
+    # the chromaticity edge, so without S_s nothing ties the two halves' shading and the
+    # anchor alone sets each half's level (a false step of -0.5 in log-shading)
+    h, w = 24, 48
+    x = torch.linspace(0, 1, w, dtype=torch.float64).view(1, 1, 1, w).expand(1, 1, h, w)
+    shade = 0.3 + 0.6 * x
+    albedo = torch.empty(1, 3, h, w, dtype=torch.float64)
+    albedo[..., : w // 2] = torch.tensor([0.15, 0.45, 0.15], dtype=torch.float64).view(3, 1, 1)
+    albedo[..., w // 2 :] = 0.8
+    problem = ShadingProblem(albedo * shade)
+    opts = ShadingOptions(tol=1e-10, max_iter=5000)
+    true_ratio = 0.25 / 0.8  # mean albedo, green over white
+    results = {}
+    for lam in (0.0, 0.02):
+        res = solve_shading(
+            problem, ShadingWeights(lambda_c=0, lambda_p=0, lambda_m=0, lambda_s=lam), opts
+        )
+        assert res.diagnostics.converged
+        assert ("S_s" in res.diagnostics.terms) == (lam > 0)
+        s = res.log_shading[0, 0]
+        step = float(s[:, w // 2].mean() - s[:, w // 2 - 1].mean())
+        r = res.reflectance.mean(1)[0]
+        ratio = float(r[:, : w // 2].mean() / r[:, w // 2 :].mean())
+        results[lam] = (step, ratio)
+    step, ratio = results[0.02]
+    assert abs(step) < 0.03  # the true step is log(0.6125 / 0.5875) = 0.02
+    assert abs(ratio / true_ratio - 1) < 0.05
+    step0, ratio0 = results[0.0]
+    assert step0 < -0.3 and abs(ratio0 / true_ratio - 1) > 0.3  # what S_s fixes

@@ -29,12 +29,12 @@ def _astuple(w):
 
 # --------------------------------------------------------------------------- §3.4 schedule
 def test_shading_weights_step_follows_the_schedule():
-    # §3.4: global (S_c, S_p) and mid-level (S_m) weights × τ, local (S_l) / τ
-    w = ShadingWeights(lambda_c=0.02, lambda_p=0.03, lambda_m=0.05, lambda_l=2.0)
+    # §3.4: global (S_c, S_p) and mid-level (S_m) weights × τ, local (S_l, and S_s) / τ
+    w = ShadingWeights(lambda_c=0.02, lambda_p=0.03, lambda_m=0.05, lambda_l=2.0, lambda_s=0.01)
     nxt = w.step(TAU)
     assert isinstance(nxt, ShadingWeights)
-    assert _astuple(nxt) == (0.02 * TAU, 0.03 * TAU, 0.05 * TAU, 2.0 / TAU)
-    assert _astuple(w) == (0.02, 0.03, 0.05, 2.0)  # a new object, the old one unchanged
+    assert _astuple(nxt) == (0.02 * TAU, 0.03 * TAU, 0.05 * TAU, 2.0 / TAU, 0.01 / TAU)
+    assert _astuple(w) == (0.02, 0.03, 0.05, 2.0, 0.01)  # a new object, the old one unchanged
     # k steps: × τ^k and / τ^k
     k, cur = 4, w
     for _ in range(k):

@@ -66,6 +66,7 @@ SHADING_EQUATIONS: dict[str, str] = {
     "S_p": "Eq. 3 (matting-Laplacian propagation)",
     "S_m": "Eq. 4 (mid-level proposal affinity)",
     "S_l": "Eq. 5 (local Retinex)",
+    "S_s": "not in the paper (plain 3x3 shading smoothness)",
 }
 """Name -> the paper's equation of every shading prior."""
 

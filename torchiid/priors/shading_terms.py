@@ -1,6 +1,7 @@
-"""The 3x3 pairwise shading priors ``S_m`` (mid-level, Eq. 4) and ``S_l`` (local Retinex, Eq. 5).
+"""The 3x3 pairwise shading priors ``S_m`` (Eq. 4), ``S_l`` (Eq. 5) and ``S_s`` (not the paper's).
 
-Both live on the 3x3 half-offset stencil (4 offsets, each unordered neighbour pair once) and are
+``S_m`` is the mid-level prior, ``S_l`` the local Retinex prior and ``S_s`` plain smoothness. All
+three live on the 3x3 half-offset stencil (4 offsets, each unordered neighbour pair once) and are
 returned as :class:`~torchiid.priors.quadratic.StencilQuadratic` terms in the log-shading
 ``s = log sigma``.
 
@@ -14,6 +15,11 @@ clamped to ``dark_eps`` so black pixels have a defined, neutral chromaticity). W
 ``t_c = 1e-4`` the chromaticity factor is nearly binary: it is ``>= 0.37`` only for pairs whose
 colours differ by less than about 0.8 degrees (``1 - cos < 1e-4``) and vanishes otherwise, so
 ``S_l`` mostly ties pixels of identical chromaticity.
+
+* ``S_s = sum_ij (s_i - s_j)^2`` over the same pairs (weight 1; pairs leaving the mask dropped).
+  Not one of the paper's priors: where ``S_l`` cuts a pair (a chromaticity edge) and no other
+  term decides, the shading's offset across the edge is otherwise free, and the solver fills it
+  from wherever it started (see :func:`smoothness_term`).
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ __all__ = [
     "shading_stencil",
     "pair_mask",
     "midlevel_term",
+    "smoothness_term",
     "retinex_weights",
     "retinex_term",
     "intensity",
@@ -86,6 +93,43 @@ def midlevel_term(
     check_finite(sim, "similarity")
     w = torch.exp(-((1 - sim) ** 2) / t_m**2)
     pm = pair_mask(stencil, mask, w.dtype)
+    return StencilQuadratic(stencil, w if pm is None else w * pm)
+
+
+def smoothness_term(
+    stencil: Stencil,
+    batch: int,
+    mask: torch.Tensor | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> StencilQuadratic:
+    """The plain shading smoothness ``S_s = Σ_ij (s_i − s_j)²`` over 3x3 neighbour pairs.
+
+    Not one of the paper's priors. ``S_l`` ties the reflectance of neighbours of the same
+    chromaticity and cuts every pair across a chromaticity edge (``t_c = 1e-4``); ``S_c`` and
+    ``S_m`` tie patches and proposals, and the matting Laplacian's null space contains shading
+    that jumps wherever its base image does. So across a chromaticity edge nothing decides
+    whether the shading steps, and the step is whatever the solver's start left there (on
+    MIT's dinosaur the green patches came out darker in the shading than the white body).
+    A small weight (``lambda_s``) makes the shading continuous there and is negligible where
+    ``S_l`` ties pixels (its weights are about 1 per pair, ``lambda_l`` = 2).
+
+    Args:
+        stencil: the 3x3 stencil (:func:`shading_stencil`).
+        batch: number of images.
+        mask: optional ``(B, 1, H, W)`` bool; pairs leaving it get weight 0.
+        dtype: working dtype.
+
+    Returns:
+        ``StencilQuadratic`` with weight 1 on every pair inside the image (and mask).
+
+    Shape:
+        unknowns ``(B, 1, H, W)``.
+    """
+    if batch < 1:
+        raise ParameterError(f"batch must be >= 1, got {batch}")
+    valid = stencil.valid.to(device=stencil.device, dtype=dtype)
+    w = valid.expand(batch, stencil.num_offsets, stencil.height, stencil.width).contiguous()
+    pm = pair_mask(stencil, mask, dtype)
     return StencilQuadratic(stencil, w if pm is None else w * pm)
 
 

@@ -88,12 +88,14 @@ class ShadingWeights:
         lambda_p: ``S_p``, the matting-Laplacian propagation (paper: ``λ_g``).
         lambda_m: ``S_m``, the proposal affinity (``λ_m``).
         lambda_l: ``S_l``, the Retinex chromaticity term (``λ_l``).
+        lambda_s: ``S_s``, plain shading smoothness (not in the paper; 0 is off).
     """
 
     lambda_c: float = 0.02
     lambda_p: float = 0.02
     lambda_m: float = 0.02
     lambda_l: float = 2.0
+    lambda_s: float = 0.0
 
     def __post_init__(self) -> None:
         _nonnegative(self)
@@ -104,10 +106,17 @@ class ShadingWeights:
         return any(getattr(self, f.name) > 0 for f in dataclasses.fields(self))
 
     def step(self, tau: float) -> ShadingWeights:
-        """The next alternation's weights (§3.4): global and mid-level ``× τ``, local ``/ τ``."""
+        """The next alternation's weights (§3.4): global and mid-level ``× τ``, local ``/ τ``.
+
+        ``S_s`` is local and follows ``S_l``.
+        """
         _check_tau(tau)
         return ShadingWeights(
-            self.lambda_c * tau, self.lambda_p * tau, self.lambda_m * tau, self.lambda_l / tau
+            self.lambda_c * tau,
+            self.lambda_p * tau,
+            self.lambda_m * tau,
+            self.lambda_l / tau,
+            self.lambda_s / tau,
         )
 
 

@@ -1,11 +1,12 @@
 """Stage 1: the L2 shading solve (paper §3.2, Eqs. 1-5).
 
 Minimises ``Psi(s) = lambda_c S_c + lambda_p S_p + lambda_m S_m + lambda_l S_l`` (the paper's
-``lambda_g`` weighs both ``S_c`` and ``S_p``) over the log-shading ``s = log sigma`` of a batch of
-**linear RGB** images, as one block-diagonal sparse SPD system solved by batched
-Jacobi-preconditioned CG (:func:`torchiid.solvers.pcg.pcg`). The stage takes its tensors, weights
-and options as the three objects of :mod:`torchiid.stages.config`; :func:`build_shading_system`
-is the one place the priors are built.
+``lambda_g`` weighs both ``S_c`` and ``S_p``), plus ``lambda_s S_s`` (plain smoothness, not in
+the paper) when on, over the log-shading ``s = log sigma`` of a batch of **linear RGB** images,
+as one block-diagonal sparse SPD system solved by batched Jacobi-preconditioned CG
+(:func:`torchiid.solvers.pcg.pcg`). The stage takes its tensors, weights and options as the three
+objects of :mod:`torchiid.stages.config`; :func:`build_shading_system` is the one place the
+priors are built.
 
 Normalisation. Every term annihilates constants (``S_l`` fixes ``s`` only up to a shift of
 each connected group of pixels), so a tiny anchor ``alpha * sum_i (s_i - t)^2`` over the region
@@ -54,6 +55,7 @@ from torchiid.priors.shading_terms import (
     pixel_confidence,
     retinex_term,
     shading_stencil,
+    smoothness_term,
 )
 from torchiid.solvers.multigrid import AMGPreconditioner, GalerkinMultigrid
 from torchiid.solvers.pcg import PCGResult, pcg
@@ -85,9 +87,9 @@ class ShadingDiagnostics:
         iterations: PCG iterations (the batch's maximum).
         residual: ``(B,)`` final relative residual ``||b - A s|| / ||b||`` per image.
         converged: whether every image reached ``tol``.
-        times: seconds spent building each term (``"S_c"``, ``"S_p"``, ``"S_m"``, ``"S_l"``),
-            in the coarse-to-fine warm start (``"coarse"``, all coarser levels) and in the
-            full-resolution PCG (``"solve"``).
+        times: seconds spent building each term (``"S_c"``, ``"S_p"``, ``"S_m"``, ``"S_l"``,
+            ``"S_s"``), in the coarse-to-fine warm start (``"coarse"``, all coarser levels) and
+            in the full-resolution PCG (``"solve"``).
         terms: names of the active terms.
     """
 
@@ -125,8 +127,8 @@ class ShadingSystem:
     Attributes:
         total: the weighted sum of the active priors (the solver's operator; stencil terms
             merged into one shifted product).
-        terms: name (``"S_c"``, ``"S_p"``, ``"S_m"``, ``"S_l"``) -> ``(weight, term)`` of every
-            active prior, unweighted and unmerged.
+        terms: name (``"S_c"``, ``"S_p"``, ``"S_m"``, ``"S_l"``, ``"S_s"``) -> ``(weight, term)``
+            of every active prior, unweighted and unmerged.
         times: seconds spent building each term.
     """
 
@@ -448,6 +450,13 @@ def build_shading_system(
                 t_i=o.t_i,
             ),
             input_key(given, o.t_c, o.t_b, o.t_i, o.dark_eps, o.dark_level, o.clip_level, mask),
+        )
+    if weights.lambda_s > 0:
+        timed(
+            "S_s",
+            weights.lambda_s,
+            lambda: smoothness_term(stencil, b, mask, dt),
+            input_key(b, h, w, mask, dt, dev),
         )
     if not terms:
         raise ParameterError("every shading term is switched off; enable at least one")
