@@ -59,7 +59,7 @@ class Parameters:
         lambda_s: weight of ``S_s``, plain 3x3 shading smoothness (not one of the paper's
             priors; the ``paper`` preset has 0). Where ``S_l`` cuts the pairs across a
             chromaticity edge, nothing else decides whether the shading steps there; ``S_s``
-            makes it continuous. Scheduled like ``lambda_l`` (``/ τ`` per alternation).
+            pulls it towards continuity. Scheduled like ``lambda_l`` (``/ τ`` per alternation).
             Default 0.01 (MIT-Berkeley, README "Quality on MIT-Berkeley").
         t_c: chromaticity deviation of ``S_l``'s weights.
         t_b: dark-pixel deviation of ``S_l``'s weights.

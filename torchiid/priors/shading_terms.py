@@ -110,8 +110,8 @@ def smoothness_term(
     that jumps wherever its base image does. So across a chromaticity edge nothing decides
     whether the shading steps, and the step is whatever the solver's start left there (on
     MIT's dinosaur the green patches came out darker in the shading than the white body).
-    A small weight (``lambda_s``) makes the shading continuous there and is negligible where
-    ``S_l`` ties pixels (its weights are about 1 per pair, ``lambda_l`` = 2).
+    A small weight (``lambda_s``) pulls the shading towards continuity there and is negligible
+    where ``S_l`` ties pixels (its weights are about 1 per pair, ``lambda_l`` = 2).
 
     Args:
         stencil: the 3x3 stencil (:func:`shading_stencil`).
