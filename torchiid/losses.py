@@ -6,7 +6,8 @@ are derived from the image alone (and its Stage 0 features) and computed **witho
 
 * shading (Eq. 1): ``Σ_t λ_t E_t(s)`` with ``s = log S`` and
   ``E_t(s) = sᵀ L_t s − 2 b_tᵀ s + c_t = Σ_r w_r ((M s)_r − c_r)²`` for ``S_c`` (Eq. 2),
-  ``S_p`` (Eq. 3), ``S_m`` (Eq. 4), ``S_l`` (Eq. 5) -- :func:`shading_losses`;
+  ``S_p`` (Eq. 3), ``S_m`` (Eq. 4), ``S_l`` (Eq. 5) and, when ``lambda_s > 0``, ``S_s`` (plain
+  smoothness, not in the paper) -- :func:`shading_losses`;
 * reflectance (Eq. 12): ``Σ_k γ_k ‖W_k M_k R‖₁`` for ``A`` (local, Eq. 8), ``B`` (mid-level,
   Eq. 9), ``C`` (global, Eq. 10) -- :func:`reflectance_losses`; the colour weights are
   computed on ``ρ`` = the image (the solver's first alternation uses the Stage 1 ``ρ``);
@@ -49,7 +50,7 @@ class ImagePriors:
     """Every active prior of a batch of images, built separately.
 
     Attributes:
-        shading: name (``"S_c"``, ``"S_p"``, ``"S_m"``, ``"S_l"``) ->
+        shading: name (``"S_c"``, ``"S_p"``, ``"S_m"``, ``"S_l"``, ``"S_s"``) ->
             :class:`~torchiid.priors.api.ShadingPrior`.
         reflectance: name (``"A"``, ``"B"``, ``"C"``; ``"A+B"`` when built with
             ``merge=True``) -> :class:`~torchiid.priors.api.ReflectancePrior`.

@@ -431,7 +431,7 @@ def decompose(
     shading_opt, refl_opt = params.shading_options(), params.reflectance_options()
     s_prev = r_prev = None
     sigma = rho = refl = None
-    shading_cache = ShadingSystemCache()  # S_c, S_m, S_l are built once per image
+    shading_cache = ShadingSystemCache()  # S_c, S_m, S_l, S_s are built once per image
     reflectance_cache = ReflectanceCache()  # and B's proposal-feature factor
     layers: list[IterationLayers] = []
     solves: list[SolveReport] = []

@@ -57,10 +57,11 @@ class Parameters:
             0.01 here, re-tuned with ``S_s`` on MIT-Berkeley).
         lambda_l: weight of the local Retinex term ``S_l``.
         lambda_s: weight of ``S_s``, plain 3x3 shading smoothness (not one of the paper's
-            priors; the ``paper`` preset has 0). Where ``S_l`` cuts the pairs across a
-            chromaticity edge, nothing else decides whether the shading steps there; ``S_s``
-            pulls it towards continuity. Scheduled like ``lambda_l`` (``/ τ`` per alternation).
-            Default 0.01 (MIT-Berkeley, README "Quality on MIT-Berkeley").
+            priors; the ``paper`` preset has 0, ``converged`` 0.003). Where ``S_l`` cuts the
+            pairs across a chromaticity edge, the other terms decide only weakly whether the
+            shading steps there; ``S_s`` pulls it towards continuity. Scheduled like
+            ``lambda_l`` (``/ τ`` per alternation). Default 0.01 (MIT-Berkeley, README
+            "Quality on MIT-Berkeley").
         t_c: chromaticity deviation of ``S_l``'s weights.
         t_b: dark-pixel deviation of ``S_l``'s weights.
         t_i: intensity deviation of ``S_l``'s weights (0: off, the paper's weights): pairs
@@ -134,6 +135,9 @@ class Parameters:
 
     Switches (ablations): use_sc, use_sp, use_sm, use_sl, use_rl, use_rm, use_rg turn single
     priors on or off; ``stage1`` / ``stage2`` turn whole stages off (baselines 1 and 2).
+    ``S_s`` (not one of the paper's priors) has no switch: it follows ``lambda_s`` (0 is off),
+    so the variants of the ``default`` preset keep it; the paper's ablations as published are
+    the variants of the ``paper`` preset.
 
     Working resolution and outputs:
         max_side: images whose longer side exceeds this are decomposed at this size and the
@@ -540,7 +544,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # does not depend on it): 2.5 gets there in ~80 iterations where the paper's 40 needs ~350.
     # Each alternation's Split-Bregman starts from the previous one's Bregman variable (same
     # minimiser, 10-45% fewer iterations in alternations 2-5). The caps are safety caps (a
-    # ConvergenceWarning if hit). About half a minute per 512 px photo on 2 CPU cores.
+    # ConvergenceWarning if hit). 20-40 s per 512 px photo on 2 CPU cores.
     # Re-tuned for converged solves (MIT, README "Solving to tolerance"): tau 1.1 (each
     # alternation reaches its minimum, so the weight drift compounds; 0.0234 -> 0.0229, 7 of 10
     # objects better) and the L1 weights gamma halved (a minimiser flattens fully where early

@@ -18,7 +18,7 @@ from torchiid.stages.shading import anchored_system
 
 @pytest.fixture(scope="module")
 def photo_system():
-    """The full shading system (all four priors, paper weights) of a 96x72 real photo."""
+    """The full shading system (the default's five priors, S_s included) of a 96x72 photo."""
     skimage_data = pytest.importorskip("skimage.data")
     from torchiid.features.semantic import semantic_features
     from torchiid.params import Parameters
@@ -26,12 +26,12 @@ def photo_system():
     rgb = skimage_data.chelsea()
     img = torch.from_numpy(rgb).permute(2, 0, 1)[None].float() / 255
     img = F.interpolate(srgb_to_linear(img), size=(72, 96), mode="area")
-    p = Parameters().replace(lambda_m=0.02, lambda_s=0.0)  # the paper's shading weights
+    p = Parameters()
     f = semantic_features(img, p)
     problem = ShadingProblem(img, f.patch_centers, f.patch_features, f.similarity, None, None)
     o = p.shading_options()
     built = build_shading_system(problem, p.shading_weights(1), o)
-    assert set(built.terms) == {"S_c", "S_p", "S_m", "S_l"}
+    assert set(built.terms) == {"S_c", "S_p", "S_m", "S_l", "S_s"}
     sys32 = anchored_system(built.total, img, None, o.anchor, o.dark_eps)
     return built.total, sys32
 

@@ -1,11 +1,12 @@
-"""The paper's priors as public objects: one operator and one exact sparse matrix each.
+"""The method's priors as public objects: one operator and one exact sparse matrix each.
 
 Every prior of the method is wrapped with **one meaning** for both of its forms:
 
-* a shading prior (``S_c`` Eq. 2, ``S_p`` Eq. 3, ``S_m`` Eq. 4, ``S_l`` Eq. 5, on the
-  log-shading ``s``) is the quadratic energy ``E(s) = sᵀ L s − 2 bᵀ s + c`` and both
-  :meth:`ShadingPrior.matvec` and :meth:`ShadingPrior.to_sparse` are the **quadratic form's
-  matrix** ``L`` (symmetric positive semi-definite);
+* a shading prior (``S_c`` Eq. 2, ``S_p`` Eq. 3, ``S_m`` Eq. 4, ``S_l`` Eq. 5, and ``S_s``,
+  plain smoothness, which is not the paper's; on the log-shading ``s``) is the quadratic
+  energy ``E(s) = sᵀ L s − 2 bᵀ s + c`` and both :meth:`ShadingPrior.matvec` and
+  :meth:`ShadingPrior.to_sparse` are the **quadratic form's matrix** ``L`` (symmetric
+  positive semi-definite);
 * a reflectance prior (``A`` Eq. 8, ``B`` Eq. 9, ``C`` Eq. 10, on the reflectance ``z``) is the
   L1 energy ``‖W M z‖₁`` and both :meth:`ReflectancePrior.apply` and
   :meth:`ReflectancePrior.to_sparse` are the **weighted difference operator** ``W M`` (its
@@ -68,7 +69,7 @@ SHADING_EQUATIONS: dict[str, str] = {
     "S_l": "Eq. 5 (local Retinex)",
     "S_s": "not in the paper (plain 3x3 shading smoothness)",
 }
-"""Name -> the paper's equation of every shading prior."""
+"""Name -> the paper's equation of every shading prior (``S_s`` is not the paper's)."""
 
 REFLECTANCE_EQUATIONS: dict[str, str] = {
     "A": "Eq. 8 (local colour affinity)",
@@ -121,7 +122,7 @@ class ShadingPrior:
     """One shading prior ``E(s) = sᵀ L s − 2 bᵀ s + c = Σ_r w_r ((M s)_r − c_r)²``.
 
     Attributes:
-        name: ``"S_c"``, ``"S_p"``, ``"S_m"`` or ``"S_l"``.
+        name: ``"S_c"``, ``"S_p"``, ``"S_m"``, ``"S_l"`` or ``"S_s"``.
         weight: its weight ``λ`` in Eq. 1 (at the alternation it was built for).
         term: the solver's :class:`~torchiid.priors.quadratic.QuadraticTerm` (unweighted).
         equation: the paper's equation.

@@ -17,9 +17,9 @@ colours differ by less than about 0.8 degrees (``1 - cos < 1e-4``) and vanishes 
 ``S_l`` mostly ties pixels of identical chromaticity.
 
 * ``S_s = sum_ij (s_i - s_j)^2`` over the same pairs (weight 1; pairs leaving the mask dropped).
-  Not one of the paper's priors: where ``S_l`` cuts a pair (a chromaticity edge) and no other
-  term decides, the shading's offset across the edge is otherwise free, and the solver fills it
-  from wherever it started (see :func:`smoothness_term`).
+  Not one of the paper's priors: where ``S_l`` cuts a pair (a chromaticity edge), the other
+  terms decide the shading's offset across the edge only weakly, and an early-stopped solver
+  keeps it from wherever it started (see :func:`smoothness_term`).
 """
 
 from __future__ import annotations
@@ -107,9 +107,10 @@ def smoothness_term(
     Not one of the paper's priors. ``S_l`` ties the reflectance of neighbours of the same
     chromaticity and cuts every pair across a chromaticity edge (``t_c = 1e-4``); ``S_c`` and
     ``S_m`` tie patches and proposals, and the matting Laplacian's null space contains shading
-    that jumps wherever its base image does. So across a chromaticity edge nothing decides
-    whether the shading steps, and the step is whatever the solver's start left there (on
-    MIT's dinosaur the green patches came out darker in the shading than the white body).
+    that jumps wherever its base image does. So across a chromaticity edge the energy decides
+    only weakly whether the shading steps, and an early-stopped solve keeps whatever step its
+    start left there (on MIT's dinosaur the green patches came out darker in the shading than
+    the white body).
     A small weight (``lambda_s``) pulls the shading towards continuity there and is negligible
     where ``S_l`` ties pixels (its weights are about 1 per pair, ``lambda_l`` = 2).
 

@@ -20,9 +20,10 @@ Masks. With ``mask`` every term drops the pairs, windows and rows that touch a p
 outside pixels are pinned to ``s = 0`` (``sigma = 1``, ``rho = I``) and do not enter the solve,
 so the masked object is decomposed by itself.
 
-Speed. The products never touch a sparse matrix: ``S_l`` and ``S_m`` are 3x3 stencils, ``S_p``
-is converted once to an equivalent signed 5x5 stencil (:meth:`MattingQuadratic.as_stencil`),
-and all three merge into one 12-offset shifted product; ``S_c`` is a small sparse product.
+Speed. The products never touch a sparse matrix: ``S_l``, ``S_m`` and ``S_s`` are 3x3 stencils,
+``S_p`` is converted once to an equivalent signed 5x5 stencil
+(:meth:`MattingQuadratic.as_stencil`), and they merge into one 12-offset shifted product;
+``S_c`` is a small sparse product.
 Without a warm start, ``levels > 1`` first solves 2x-downsampled copies of the problem and
 upsamples their solution as the initial guess (cascadic CG): the Jacobi-PCG iteration count on
 these near-binary, strongly varying weights is dominated by smooth, low-frequency error that the
@@ -141,13 +142,13 @@ class ShadingSystem:
 class ShadingSystemCache:
     """Terms of Eq. 1 that do not change between the alternations on one image.
 
-    ``S_c`` (patch features), ``S_m`` (proposal similarities) and ``S_l`` (the image) depend
-    only on Stage 0 and the input, not on the previous reflectance, so the pipeline builds
-    them once and reuses them in every alternation (the weights ``lambda`` are applied
-    afterwards, so the tau schedule of §3.4 is unaffected). Only the matting term ``S_p``,
-    whose base image is the previous reflectance, is rebuilt. Keep one cache per image
-    batch; an entry is reused only when its inputs (same tensors, unmodified) and
-    parameters match, otherwise it is rebuilt.
+    ``S_c`` (patch features), ``S_m`` (proposal similarities), ``S_l`` (the image) and ``S_s``
+    (the image size and mask) depend only on Stage 0 and the input, not on the previous
+    reflectance, so the pipeline builds them once and reuses them in every alternation (the
+    weights ``lambda`` are applied afterwards, so the tau schedule of §3.4 is unaffected).
+    Only the matting term ``S_p``, whose base image is the previous reflectance, is rebuilt.
+    Keep one cache per image batch; an entry is reused only when its inputs (same tensors,
+    unmodified) and parameters match, otherwise it is rebuilt.
 
     Attributes:
         terms: name -> (key of the inputs, the unweighted term).
@@ -487,7 +488,8 @@ def solve_shading(
             coarse ``s`` warm-starts the full-resolution solve ("cascadic" CG). The answer
             is the full-resolution minimiser either way; only the iteration count changes.
         cache: a :class:`ShadingSystemCache` kept across the alternations on one image:
-            ``S_c``, ``S_m`` and ``S_l`` are then built once (same result, less time).
+            ``S_c``, ``S_m``, ``S_l`` and ``S_s`` are then built once (same result, less
+            time).
 
     Returns:
         :class:`ShadingResult`.
