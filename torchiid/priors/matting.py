@@ -28,6 +28,7 @@ import torch.nn.functional as F
 
 from torchiid.core.check import check_image
 from torchiid.core.exceptions import ImageError, ShapeError
+from torchiid.priors import kernels
 from torchiid.priors.quadratic import QuadraticTerm, StencilQuadratic
 from torchiid.priors.stencil import Stencil, half_offsets
 
@@ -202,8 +203,11 @@ class MattingQuadratic(QuadraticTerm):
             dim=1,
         )
         qp = F.pad(q * v, (2, 2, 2, 2))  # window (wy, wx) at padded (wy + 2, wx + 2)
-        ip = F.pad(img, (2, 2, 0, 2))
         stencil = Stencil(h, w, half_offsets(5), device=self.device)
+        if kernels.usable(qp, img):
+            weights = kernels.matting_weights(qp, img, stencil.offsets, self.dtype)
+            return StencilQuadratic(stencil, weights)
+        ip = F.pad(img, (2, 2, 0, 2))
         weights = torch.zeros(b, stencil.num_offsets, h, w, dtype=self.dtype, device=self.device)
         for y0 in range(0, h, band_rows):  # row bands keep the float64 temporaries in cache
             y1 = min(h, y0 + band_rows)

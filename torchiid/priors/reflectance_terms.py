@@ -43,6 +43,7 @@ import torch
 
 from torchiid.core.colour import linear_to_srgb
 from torchiid.core.exceptions import ParameterError, ShapeError
+from torchiid.priors import kernels
 from torchiid.priors.stencil import Stencil, shift_slices
 
 __all__ = [
@@ -107,6 +108,10 @@ def _check_t(t: float) -> None:
         raise ParameterError(f"the weight deviation t must be > 0, got {t}")
 
 
+def _bool(mask: torch.Tensor | None) -> torch.Tensor | None:
+    return None if mask is None else mask.to(torch.bool)
+
+
 def stencil_affinity(
     features: torch.Tensor, stencil: Stencil, t: float, mask: torch.Tensor | None = None
 ) -> torch.Tensor:
@@ -126,8 +131,10 @@ def stencil_affinity(
     """
     _check_t(t)
     b, _, h, w = features.shape
-    out = features.new_zeros(b, stencil.num_offsets, h, w)
     scale = -1.0 / (2.0 * t * t)
+    if kernels.usable(features) and (mask is None or mask.device.type == "cpu"):
+        return kernels.stencil_affinity(features, stencil.offsets, scale, mask=_bool(mask))
+    out = features.new_zeros(b, stencil.num_offsets, h, w)
     for k, (dy, dx) in enumerate(stencil.offsets):
         yi, xi, yj, xj = shift_slices(dy, dx, h, w)
         d = features[:, :, yi, xi] - features[:, :, yj, xj]
@@ -170,9 +177,13 @@ def merged_stencil_affinity(
             f"semantic_affinity has shape {tuple(semantic_affinity.shape)}, expected "
             f"{(b, stencil.num_offsets, h, w)}"
         )
-    out = colour.new_zeros(b, stencil.num_offsets, h, w)
     sc = -1.0 / (2.0 * t * t)
     a_l, a_m = gamma_l / (gamma_l + gamma_m), gamma_m / (gamma_l + gamma_m)
+    if kernels.usable(colour, semantic_affinity) and (mask is None or mask.device.type == "cpu"):
+        return kernels.stencil_affinity(
+            colour, stencil.offsets, sc, semantic_affinity, a_l, a_m, mask=_bool(mask)
+        )
+    out = colour.new_zeros(b, stencil.num_offsets, h, w)
     for k, (dy, dx) in enumerate(stencil.offsets):
         yi, xi, yj, xj = shift_slices(dy, dx, h, w)
         dc = (colour[:, :, yi, xi] - colour[:, :, yj, xj]).square_().sum(dim=1)
@@ -275,7 +286,6 @@ class StencilL1Term(_L1Term):
         if zero_invalid:
             weights = weights * stencil.valid.to(device=weights.device, dtype=weights.dtype)
         self.weights = weights
-        self._w2 = self.weights.square()
         self.state = state
         self.warm = warm
 
@@ -313,7 +323,14 @@ class StencilL1Term(_L1Term):
     @cached_property
     def _degree(self) -> torch.Tensor:
         """Weighted degree ``Σ_j v²_ij`` over both directions of every pair, ``(B, 1, H, W)``."""
-        return self.stencil.laplacian_diagonal(self._w2, zero_invalid=False)
+        if kernels.usable(self.weights):
+            return kernels.stencil_degree(self.weights, self.stencil.offsets, square=True)
+        return self.stencil.laplacian_diagonal(self.weights.square(), zero_invalid=False)
+
+    @cached_property
+    def _w2(self) -> torch.Tensor:
+        """The squared weights ``v²`` (only the torch product keeps them)."""
+        return self.weights.square()
 
     def normal_matvec(self, z: torch.Tensor) -> torch.Tensor:
         """``Mᵀ diag(v²) M z = deg ⊙ z − Σ_k v²_k ⊙ (shift_k(z) + shift_−k(z))``.
@@ -324,6 +341,10 @@ class StencilL1Term(_L1Term):
         Shape:
             ``(B, C, H, W) -> (B, C, H, W)``.
         """
+        if kernels.usable(z, self.weights):
+            return kernels.stencil_product(
+                z, self.weights, self.stencil.offsets, self._degree, square=True
+            )
         out = self._degree * z
         for k, (yi, xi, yj, xj) in self._loop():
             wk = self._w2[:, k : k + 1, yi, xi]

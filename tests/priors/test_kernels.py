@@ -1,0 +1,174 @@
+"""The compiled stencil kernels agree with the torch ops they replace."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchiid.priors import kernels
+from torchiid.priors.matting import MattingQuadratic
+from torchiid.priors.quadratic import StencilQuadratic
+from torchiid.priors.reflectance_terms import StencilL1Term
+from torchiid.priors.stencil import Stencil, half_offsets
+
+pytestmark = pytest.mark.skipif(kernels._numba() is None, reason="needs numba")
+
+
+@pytest.fixture(params=["serial", "parallel"], autouse=True)
+def kernel_variant(request, monkeypatch):
+    """Every test runs on the calling thread alone, and in row bands on 2 threads."""
+    if request.param == "parallel":
+        monkeypatch.setattr(kernels, "PARALLEL_WORK", 0)
+        before = torch.get_num_threads()
+        torch.set_num_threads(2)
+        yield request.param
+        torch.set_num_threads(before)
+    else:
+        monkeypatch.setattr(kernels, "PARALLEL_WORK", float("inf"))
+        yield request.param
+
+
+@pytest.fixture
+def torch_ops(monkeypatch):
+    """Run the block with the torch ops (the reference), as ``TORCHIID_KERNELS=torch`` does."""
+
+    def run(fn):
+        with monkeypatch.context() as m:
+            m.setattr(kernels, "usable", lambda *t: False)
+            return fn()
+
+    return run
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_stencil_quadratic_product_matches_torch(torch_ops, dtype):
+    g = torch.Generator().manual_seed(0)
+    st = Stencil(13, 17, half_offsets(5))
+    # signed weights, as the matting Laplacian's stencil has
+    w = torch.randn(2, st.num_offsets, 13, 17, generator=g, dtype=dtype)
+    x = torch.randn(2, 1, 13, 17, generator=g, dtype=dtype)
+    q = StencilQuadratic(st, w)
+    assert kernels.usable(x, q.weights)
+    fast = q.matvec(x)
+    ref = torch_ops(lambda: StencilQuadratic(st, w).matvec(x))
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(fast, ref, rtol=tol, atol=tol)
+    # and both equal the assembled matrix
+    dense = q.to_sparse().to_dense()
+    torch.testing.assert_close(
+        fast.reshape(2, -1), (dense @ x.reshape(-1)).reshape(2, -1), rtol=tol, atol=10 * tol
+    )
+
+
+def test_l1_normal_product_matches_torch_on_three_channels(torch_ops):
+    g = torch.Generator().manual_seed(1)
+    st = Stencil.square(20, 23, 11)  # 60 offsets, reaching 5 pixels past every border
+    w = torch.rand(1, st.num_offsets, 20, 23, generator=g)
+    z = torch.rand(1, 3, 20, 23, generator=g)
+    fast = StencilL1Term(st, w).normal_matvec(z)
+    ref = torch_ops(lambda: StencilL1Term(st, w).normal_matvec(z))
+    torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-5)
+    # not a trivial agreement: the product is far from zero and from the diagonal part alone
+    term = StencilL1Term(st, w)
+    assert fast.abs().max() > 0.5
+    assert (fast - term.normal_diagonal() * z).abs().max() > 0.5
+
+
+def test_matting_stencil_matches_torch_with_mask(torch_ops):
+    g = torch.Generator().manual_seed(2)
+    base = torch.rand(2, 3, 16, 19, generator=g)
+    mask = torch.rand(2, 1, 16, 19, generator=g) > 0.1
+    fast = MattingQuadratic(base, mask=mask).as_stencil()
+    ref = torch_ops(lambda: MattingQuadratic(base, mask=mask).as_stencil())
+    torch.testing.assert_close(fast.weights, ref.weights, rtol=1e-5, atol=1e-5)
+    x = torch.randn(2, 1, 16, 19, generator=g)
+    torch.testing.assert_close(
+        fast.matvec(x), MattingQuadratic(base, mask=mask).matvec(x), rtol=1e-4, atol=1e-4
+    )
+
+
+def test_result_does_not_depend_on_the_thread_count(monkeypatch):
+    monkeypatch.setattr(kernels, "PARALLEL_WORK", 0)
+    g = torch.Generator().manual_seed(3)
+    st = Stencil.square(40, 31, 11)
+    w = torch.rand(1, st.num_offsets, 40, 31, generator=g)
+    z = torch.rand(1, 3, 40, 31, generator=g)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)  # one band, on this thread
+        one = StencilL1Term(st, w).normal_matvec(z)
+        torch.set_num_threads(2)  # two bands, one of them on the pool
+        two = StencilL1Term(st, w).normal_matvec(z)
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(one, two)
+
+
+def test_autograd_and_other_dtypes_keep_the_torch_ops():
+    x = torch.rand(1, 1, 8, 8, requires_grad=True)
+    w = torch.rand(1, 4, 8, 8)
+    assert not kernels.usable(x, w)
+    with torch.no_grad():
+        assert kernels.usable(x, w)
+    assert not kernels.usable(x.detach().half(), w.half())
+    assert not kernels.usable(x.detach(), w.double())
+    # the differentiable loss path still gets a gradient
+    q = StencilQuadratic(Stencil.square(8, 8, 3), w)
+    q.energy(x).sum().backward()
+    assert x.grad is not None and x.grad.abs().sum() > 0
+
+
+def test_environment_switch_turns_the_kernels_off(monkeypatch):
+    monkeypatch.setenv("TORCHIID_KERNELS", "torch")
+    kernels._numba.cache_clear()
+    try:
+        assert not kernels.usable(torch.rand(1, 1, 4, 4))
+    finally:
+        monkeypatch.delenv("TORCHIID_KERNELS")
+        kernels._numba.cache_clear()
+    assert kernels.usable(torch.rand(1, 1, 4, 4))
+
+
+@pytest.mark.parametrize("square", [False, True])
+def test_degree_matches_the_laplacian_diagonal(square):
+    g = torch.Generator().manual_seed(4)
+    st = Stencil.square(14, 18, 11)
+    w = torch.rand(2, st.num_offsets, 14, 18, generator=g) * st.valid
+    fast = kernels.stencil_degree(w, st.offsets, square=square)
+    ref = st.laplacian_diagonal(w.square() if square else w)
+    torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-5)
+    # border pixels have fewer pairs: the degree is not a constant
+    assert fast[:, :, 7, 9].min() > 1.5 * fast[:, :, 0, 0].max()
+
+
+@pytest.mark.parametrize("with_mask", [False, True])
+def test_affinities_match_torch(torch_ops, with_mask):
+    from torchiid.priors.reflectance_terms import merged_stencil_affinity, stencil_affinity
+
+    g = torch.Generator().manual_seed(5)
+    st = Stencil.square(15, 21, 11)
+    colour = torch.rand(2, 3, 15, 21, generator=g) * 0.1
+    feats = torch.rand(2, 7, 15, 21, generator=g) * 0.1
+    sem = torch.rand(2, st.num_offsets, 15, 21, generator=g)
+    mask = (torch.rand(2, 1, 15, 21, generator=g) > 0.2) if with_mask else None
+    fast_m = merged_stencil_affinity(colour, sem, st, 0.05, 2.0, 20.0, mask)
+    ref_m = torch_ops(lambda: merged_stencil_affinity(colour, sem, st, 0.05, 2.0, 20.0, mask))
+    torch.testing.assert_close(fast_m, ref_m, rtol=1e-5, atol=1e-6)
+    fast_s = stencil_affinity(feats, st, 0.05, mask)
+    ref_s = torch_ops(lambda: stencil_affinity(feats, st, 0.05, mask))
+    torch.testing.assert_close(fast_s, ref_s, rtol=1e-5, atol=1e-6)
+    # weights spread over (0, 1], and exactly 0 where a pair leaves the image
+    assert float(fast_m[fast_m > 0].min()) < 0.1 and 0.9 < float(fast_m.max()) <= 1.0 + 1e-6
+    assert float(fast_s[:, :, :, -1][:, st.offsets.index((0, 1))].abs().max()) == 0.0
+
+
+def test_a_forked_child_gets_its_own_band_pool(monkeypatch):
+    import os
+
+    first = kernels._executor(1)
+    assert kernels._executor(1) is first
+    pid = os.getpid()
+    monkeypatch.setattr(kernels.os, "getpid", lambda: pid + 1)  # as in a fork's child
+    second = kernels._executor(1)
+    assert second is not first
+    assert second.submit(lambda: 7).result() == 7
