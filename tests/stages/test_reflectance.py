@@ -46,8 +46,10 @@ def test_cache_reuses_the_proposal_factor_and_changes_nothing():
     scaled = problem.replace(rho=0.9 * rho)  # new rho, same g̊
     cache = ReflectanceCache()
     first = solve_reflectance(problem, W, opts, cache=cache)
+    weights = cache.weights_buffer(rho, 12)  # the merged A/B weights' storage (5x5: 12 offsets)
     again = solve_reflectance(scaled, W, opts, cache=cache)
     assert cache.hits == 1
+    assert cache.weights_buffer(rho, 12) is weights  # written again in place, not reallocated
     torch.testing.assert_close(again.reflectance, solve_reflectance(scaled, W, opts).reflectance)
     torch.testing.assert_close(first.reflectance, solve_reflectance(problem, W, opts).reflectance)
     gpca.mul_(2.0)  # modified in place: the factor is recomputed, not reused

@@ -26,6 +26,7 @@ the machine code on disk for every later process).
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -41,6 +42,8 @@ __all__ = [
     "matting_weights",
 ]
 
+logger = logging.getLogger(__name__)
+
 
 @cache
 def _numba():
@@ -51,9 +54,11 @@ def _numba():
         import numba
     except ImportError:  # pragma: no cover - numba is a dependency; kept for slim installs
         return None
-
-    from torchiid.priors import stencil_kernels
-
+    try:
+        from torchiid.priors import stencil_kernels
+    except Exception as exc:  # pragma: no cover - e.g. no writable directory for numba's cache
+        logger.warning("compiled kernels unavailable (%s); using the torch ops", exc)
+        return None
     return numba, stencil_kernels
 
 
@@ -203,11 +208,13 @@ def stencil_affinity(
     a_l: float = 1.0,
     a_m: float = 0.0,
     mask: torch.Tensor | None = None,
+    out: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """``(a_l + a_m · s_k(i)) · exp(scale · ‖f_i − f_{i + o_k}‖²)`` for every stencil pair.
 
     Without ``semantic`` the factor is 1. Pairs leaving the image, or touching a pixel outside
-    ``mask``, get 0. One pass over the offsets, the output written once (no zero fill first).
+    ``mask``, get 0. One pass over the offsets, the output written once (no zero fill first),
+    into ``out`` when given (contiguous, ``(B, K, H, W)``, the features' dtype).
 
     Shape:
         features ``(B, D, H, W)``, semantic ``(B, K, H, W)``, mask ``(B, 1, H, W)`` bool ->
@@ -217,7 +224,8 @@ def stencil_affinity(
     dys, dxs = _offsets(tuple(offsets))
     b, d, h, w = features.shape
     dt = features.dtype
-    out = torch.empty(b, len(offsets), h, w, dtype=dt)
+    if out is None or not out.is_contiguous():
+        out = torch.empty(b, len(offsets), h, w, dtype=dt)
     none = torch.empty(0, 0, 0, 0, dtype=dt)
     sem = none if semantic is None else semantic.contiguous()
     m = torch.empty(0, 0, 0, 0, dtype=torch.bool) if mask is None else mask.contiguous()

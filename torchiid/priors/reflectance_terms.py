@@ -153,6 +153,7 @@ def merged_stencil_affinity(
     gamma_l: float,
     gamma_m: float,
     mask: torch.Tensor | None = None,
+    out: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Weights ``v̂ = (γ_l v^l + γ_m v^m) / (γ_l + γ_m)`` of ``A`` and ``B`` merged (Eqs. 8–9).
 
@@ -162,7 +163,8 @@ def merged_stencil_affinity(
     ``v̂ = v^l · (γ_l + γ_m e^g) / (γ_l + γ_m)``. ``e^g`` depends only on ``g̊``, which Stage 0
     computes once, so callers pass it precomputed (``stencil_affinity(g̊, stencil, t_g, mask)``)
     and reuse it across the alternations; one pass over the offsets then gives ``v̂`` without
-    a second ``(B, K, H, W)`` tensor.
+    a second ``(B, K, H, W)`` tensor. ``out`` (optional, ``(B, K, H, W)``, the dtype and
+    device of ``colour``) receives the result instead of a new tensor.
 
     Shape:
         colour ``(B, 3, H, W)``, semantic_affinity ``(B, K, H, W)``, mask ``(B, 1, H, W)`` ->
@@ -179,11 +181,14 @@ def merged_stencil_affinity(
         )
     sc = -1.0 / (2.0 * t * t)
     a_l, a_m = gamma_l / (gamma_l + gamma_m), gamma_m / (gamma_l + gamma_m)
+    shape = (b, stencil.num_offsets, h, w)
+    if out is not None and (out.shape != shape or out.dtype != colour.dtype):
+        raise ShapeError(f"out has shape {tuple(out.shape)} / {out.dtype}, expected {shape}")
     if kernels.usable(colour, semantic_affinity) and (mask is None or mask.device.type == "cpu"):
         return kernels.stencil_affinity(
-            colour, stencil.offsets, sc, semantic_affinity, a_l, a_m, mask=_bool(mask)
+            colour, stencil.offsets, sc, semantic_affinity, a_l, a_m, mask=_bool(mask), out=out
         )
-    out = colour.new_zeros(b, stencil.num_offsets, h, w)
+    out = colour.new_zeros(shape) if out is None else out.zero_()
     for k, (dy, dx) in enumerate(stencil.offsets):
         yi, xi, yj, xj = shift_slices(dy, dx, h, w)
         dc = (colour[:, :, yi, xi] - colour[:, :, yj, xj]).square_().sum(dim=1)

@@ -104,7 +104,8 @@ class ReflectanceCache:
     on Stage 0's ``g̊`` and the mask, not on the current ``ρ``, so the pipeline computes it once
     per image batch and reuses it; it is recomputed when its inputs (same tensors, unmodified)
     or parameters differ. It also keeps the storage of the Bregman variable (``(B, 3, K, H, W)``,
-    the stage's largest tensor) so that later alternations write into memory already in use.
+    the stage's largest tensor) and of the merged ``A``/``B`` weights, so that later alternations
+    write into memory already in use.
 
     Attributes:
         semantic: (key of the inputs, ``(B, K, H, W)`` factor) or ``None``.
@@ -117,6 +118,7 @@ class ReflectanceCache:
     hits: int = 0
     state_valid: bool = False
     _state: torch.Tensor | None = None
+    _weights: torch.Tensor | None = None
 
     def state_buffer(self, like: torch.Tensor, num_offsets: int) -> torch.Tensor:
         """Storage ``(B, C, K, H, W)`` for the Bregman variable, reused across calls."""
@@ -127,6 +129,25 @@ class ReflectanceCache:
             self._state = st = like.new_empty(shape)
             self.state_valid = False
         return st
+
+    def weights_buffer(self, like: torch.Tensor, num_offsets: int) -> torch.Tensor:
+        """Storage ``(B, K, H, W)`` for the merged ``A``/``B`` weights, reused across calls.
+
+        Each alternation's weights replace the last one's (whose solve is over), so the
+        pages of this 47 MB tensor (at 512×384) are faulted in once per image, not once per
+        alternation.
+        """
+        b, _, h, w = like.shape
+        shape = (b, num_offsets, h, w)
+        buf = self._weights
+        if (
+            buf is None
+            or buf.shape != shape
+            or buf.dtype != like.dtype
+            or buf.device != like.device
+        ):
+            self._weights = buf = like.new_empty(shape)
+        return buf
 
 
 @dataclass(frozen=True)
@@ -274,7 +295,8 @@ def build_reflectance_terms(
     t2 = time.perf_counter()
     if use_a and use_b and o.merge_stencil_terms:
         gl, gm = weights.gamma_l, weights.gamma_m
-        merged = merged_stencil_affinity(rbar, e_g, stencil, o.t, gl, gm, mask)
+        out = None if cache is None else cache.weights_buffer(rho, stencil.num_offsets)
+        merged = merged_stencil_affinity(rbar, e_g, stencil, o.t, gl, gm, mask, out=out)
         state = None if cache is None else cache.state_buffer(rho, stencil.num_offsets)
         warm = o.warm_state and cache is not None and cache.state_valid
         terms["A+B"] = (
