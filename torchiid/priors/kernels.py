@@ -1,12 +1,19 @@
 """Compiled CPU kernels for the stencil products (numba), with the torch ops as the reference.
 
-The solvers spend most of their time in stencil products ``out = deg ⊙ x − Σ_k w_k ⊙ shift_k(x)``
-over both directions of every pair: the shading PCG (a 5×5 stencil, 12 offsets) and the
-Split-Bregman ``z`` step (an 11×11 stencil, 60 offsets, 3 channels). In torch each offset is
-one strided ``addcmul`` over the whole image, ``2K`` passes over memory per product. The kernel
-here does one pass: every output row gathers its ``2K`` terms while the rows it reads are in
-cache (measured at 512×384 on 2 threads: the shading product 0.33 ms against 0.88 ms, the
-60-offset product 8 ms against 11–15 ms; ``python tools/bench_kernels.py``).
+The solvers spend most of their time in weighted Laplacian products ``Mᵀ diag(w) M x`` over
+both directions of every pair of a stencil: the shading PCG (a 5×5 stencil, 12 offsets) and
+the Split-Bregman ``z`` step (an 11×11 stencil, 60 offsets, 3 channels). In torch each
+direction of each offset is one strided ``addcmul`` over the whole image, ``2K`` passes over
+memory per product. The kernel does one pass: every output row gathers its ``2K`` terms while
+the rows it reads are in cache (``python tools/bench_kernels.py`` prints the comparison).
+
+The kernel sums the pairs in difference form, ``Σ w (x_i − x_j)``, where the torch ops use
+``deg ⊙ x − Σ w x_j``: the same operator, but it annihilates constants exactly and keeps its
+round-off relative to the differences rather than to the values. That matters for the
+``converged`` preset's float32 shading solves, which sit at the edge of what float32 resolves:
+with the ``deg`` form in the kernel, chelsea's second shading solve broke down after 2
+iterations (and was redone in float64, 1.2 s); with the difference form it converges in 14
+float32 iterations, as with the torch ops.
 
 The same one-pass kernels build the reflectance stage's 60-offset colour weights and the
 matting Laplacian's stencil (once per alternation each).
@@ -88,46 +95,23 @@ def stencil_product(
     x: torch.Tensor,
     weights: torch.Tensor,
     offsets: list[tuple[int, int]],
-    degree: torch.Tensor,
     square: bool = False,
 ) -> torch.Tensor:
-    """``degree ⊙ x − Σ_k w_k(i) x(i + o_k) − Σ_k w_k(i − o_k) x(i − o_k)`` in one pass.
+    """``Mᵀ diag(w) M x``: ``Σ_k w_k(i) (x_i − x_{i+o_k}) + Σ_k w_k(i − o_k) (x_i − x_{i−o_k})``.
 
-    The weighted Laplacian product ``Mᵀ diag(w) M x`` of a stencil when ``degree`` is its
-    weighted degree (which must count only the pairs inside the image; the kernel reads no
-    weight of a pair leaving it).
+    One pass, accumulated in float64 (see :mod:`torchiid.priors.stencil_kernels`); only the
+    pairs inside the image are read.
 
     Args:
         x: ``(B, C, H, W)``.
         weights: ``(B, K, H, W)`` pair weights indexed by the first pixel (may be signed).
         offsets: the ``K`` half offsets ``(dy, dx)`` with ``dy >= 0``.
-        degree: ``(B, 1, H, W)``.
         square: use ``w_k²`` in place of ``w_k`` (squared on the fly; saves storing them).
 
     Returns:
         A new ``(B, C, H, W)`` tensor.
     """
-    numba, kernel = _numba()
-    dys, dxs = _offsets(tuple(offsets))
-    x = x.contiguous()
-    out = torch.empty_like(x)
-    b, _, h, _ = x.shape
-    args = (
-        x.numpy(),
-        weights.contiguous().numpy(),
-        dys,
-        dxs,
-        degree.contiguous().numpy(),
-        out.numpy(),
-        square,
-    )
-    n = min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)
-    if n <= 1:
-        kernel.gather(*args, 0, b * h)
-    else:  # numba's pool: a cheaper hand-off than bands for a sub-millisecond call
-        numba.set_num_threads(n if x.numel() * 2 * len(offsets) >= PARALLEL_WORK else 1)
-        kernel.gather_parallel(*args)
-    return out
+    return _gather(x.contiguous(), weights, offsets, square, degree=False)
 
 
 def stencil_degree(
@@ -135,11 +119,26 @@ def stencil_degree(
 ) -> torch.Tensor:
     """Each pixel's summed pair weights ``Σ_k w_k(i) + Σ_k w_k(i − o_k)`` over the pairs inside.
 
-    The product of :func:`stencil_product` on ``x = −1`` with a zero degree, ``(B, 1, H, W)``.
+    ``(B, K, H, W) -> (B, 1, H, W)``, summed in float64.
     """
     b, _, h, w = weights.shape
-    minus_one = torch.full((b, 1, h, w), -1.0, dtype=weights.dtype)
-    return stencil_product(minus_one, weights, offsets, torch.zeros_like(minus_one), square)
+    shape_only = torch.empty(b, 1, h, w, dtype=weights.dtype)
+    return _gather(shape_only, weights, offsets, square, degree=True)
+
+
+def _gather(x, weights, offsets, square: bool, degree: bool) -> torch.Tensor:
+    numba, kernel = _numba()
+    dys, dxs = _offsets(tuple(offsets))
+    out = torch.empty_like(x)
+    b, _, h, _ = x.shape
+    args = (x.numpy(), weights.contiguous().numpy(), dys, dxs, out.numpy(), square, degree)
+    n = min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)
+    if n <= 1:
+        kernel.gather(*args, 0, b * h)
+    else:  # numba's pool: a cheaper hand-off than bands for a sub-millisecond call
+        numba.set_num_threads(n if x.numel() * 2 * len(offsets) >= PARALLEL_WORK else 1)
+        kernel.gather_parallel(*args)
+    return out
 
 
 #: below this many multiply-adds a call runs on the calling thread only: handing bands to

@@ -134,18 +134,6 @@ class StencilQuadratic(QuadraticTerm):
         self.__dict__["_directed_cache"] = (self.weights, out)
         return out
 
-    def _degree(self) -> torch.Tensor:
-        """Each pixel's summed pair weights, cached for the current ``weights`` tensor."""
-        cache = self.__dict__.get("_degree_cache")
-        if cache is not None and cache[0] is self.weights:
-            return cache[1]
-        if kernels.usable(self.weights):
-            deg = kernels.stencil_degree(self.weights, self.stencil.offsets)
-        else:
-            deg = self.stencil.laplacian_diagonal(self.weights, zero_invalid=False)
-        self.__dict__["_degree_cache"] = (self.weights, deg)
-        return deg
-
     def matvec(self, x: torch.Tensor) -> torch.Tensor:
         """``M^T W M x = deg * x - sum_o w_o * shift_o(x)`` with shifted slices.
 
@@ -154,7 +142,7 @@ class StencilQuadratic(QuadraticTerm):
         """
         self._check(x)
         if kernels.usable(x, self.weights):
-            return kernels.stencil_product(x, self.weights, self.stencil.offsets, self._degree())
+            return kernels.stencil_product(x, self.weights, self.stencil.offsets)
         ops, _, deg = self._directed()
         out = deg * x
         for (yi, xi, yj, xj), wk in ops:
@@ -208,7 +196,6 @@ class StencilQuadratic(QuadraticTerm):
         out = StencilQuadratic.__new__(StencilQuadratic)
         out.__dict__.update(self.__dict__)
         out.__dict__.pop("_directed_cache", None)
-        out.__dict__.pop("_degree_cache", None)
         out.weights = self.weights * factor
         out.weighted_target = (
             None if self.weighted_target is None else self.weighted_target * factor

@@ -347,9 +347,7 @@ class StencilL1Term(_L1Term):
             ``(B, C, H, W) -> (B, C, H, W)``.
         """
         if kernels.usable(z, self.weights):
-            return kernels.stencil_product(
-                z, self.weights, self.stencil.offsets, self._degree, square=True
-            )
+            return kernels.stencil_product(z, self.weights, self.stencil.offsets, square=True)
         out = self._degree * z
         for k, (yi, xi, yj, xj) in self._loop():
             wk = self._w2[:, k : k + 1, yi, xi]

@@ -4,10 +4,11 @@ Each kernel computes the output rows ``r0 .. r1 - 1`` (over the batch's ``B·H``
 calling thread, without the GIL, so :mod:`torchiid.priors.kernels` can run bands of rows on
 several threads. The stencil product, called hundreds of times per image at well under a
 millisecond, also comes as ``gather_parallel`` on numba's own thread pool (``prange``), whose
-hand-off is cheaper than a Python thread pool's (measured at 512×384 on 2 threads: 0.33 ms
-against 0.74 ms). Only multi-thread processes use it: its compilation takes about 3× longer
-(first run only) and, in one-thread processes, its pool's idle threads spin against the other
-processes (measured: two one-thread pytest workers ran 3.4× slower with it).
+hand-off is cheaper than a Python thread pool's (measured at 512×384 on 2 threads, the
+shading product: 0.33 ms against 0.74 ms). Only multi-thread processes use it: its
+compilation takes about 3× longer (first run only) and, in one-thread processes, its pool's
+idle threads spin against the other processes (measured: two one-thread pytest workers ran
+3.4× slower with it).
 """
 
 from __future__ import annotations
@@ -18,35 +19,33 @@ from numba import njit, prange
 __all__ = ["gather", "gather_parallel", "matting_weights", "affinity"]
 
 
-def _gather(z, w, dys, dxs, deg, out, square, r0, r1):  # pragma: no cover - compiled
-    """``out = deg ⊙ z − Σ_k w_k(i) z(i + o_k) − Σ_k w_k(i − o_k) z(i − o_k)``.
+def _gather(z, w, dys, dxs, out, square, degree, r0, r1):  # pragma: no cover - compiled
+    """``out_i = Σ_k w_k(i) (z_i − z_{i + o_k}) + Σ_k w_k(i − o_k) (z_i − z_{i − o_k})``.
 
-    With ``square`` the weights enter squared.
+    The weighted Laplacian product in difference form (see :mod:`torchiid.priors.kernels`);
+    ``square``: the weights enter squared; ``degree``: ``out_i = Σ w`` instead, each pixel's
+    summed pair weights (``z`` is then read for its shape only).
     """
     for r in range(r0, r1):
-        _gather_row(z, w, dys, dxs, deg, out, square, r)
+        _gather_row(z, w, dys, dxs, out, square, degree, r)
     return out
 
 
-def _gather_all(z, w, dys, dxs, deg, out, square):  # pragma: no cover - compiled
+def _gather_all(z, w, dys, dxs, out, square, degree):  # pragma: no cover - compiled
     """:func:`_gather` over all rows with numba's ``prange`` (its thread pool)."""
     for r in prange(z.shape[0] * z.shape[2]):
-        _gather_row(z, w, dys, dxs, deg, out, square, r)
+        _gather_row(z, w, dys, dxs, out, square, degree, r)
     return out
 
 
 @njit(inline="always")
-def _gather_row(z, w, dys, dxs, deg, out, square, r):  # pragma: no cover - compiled
+def _gather_row(z, w, dys, dxs, out, square, degree, r):  # pragma: no cover - compiled
     nc, h, wd = z.shape[1], z.shape[2], z.shape[3]
     nk = dys.shape[0]
     b = r // h
     y = r - b * h
     for c in range(nc):
-        o = out[b, c, y]
-        zr = z[b, c, y]
-        dr = deg[b, 0, y]
-        for x in range(wd):
-            o[x] = dr[x] * zr[x]
+        out[b, c, y, :] = 0.0
     for k in range(nk):
         dy = dys[k]
         dx = dxs[k]
@@ -55,27 +54,34 @@ def _gather_row(z, w, dys, dxs, deg, out, square, r):  # pragma: no cover - comp
             n = min(wd, wd - dx) - x0
             wr = w[b, k, y, x0 : x0 + n]
             for c in range(nc):
-                o = out[b, c, y, x0 : x0 + n]
+                zi = z[b, c, y, x0 : x0 + n]
                 zj = z[b, c, y + dy, x0 + dx : x0 + dx + n]
-                if square:
-                    for t in range(n):
-                        o[t] -= wr[t] * wr[t] * zj[t]
-                else:
-                    for t in range(n):
-                        o[t] -= wr[t] * zj[t]
+                _accumulate(out[b, c, y, x0 : x0 + n], wr, zi, zj, n, square, degree)
         if y - dy >= 0:  # i = (y, x) as the partner of j = i − (dy, dx), weight at j
             x0 = max(0, dx)
             n = min(wd, wd + dx) - x0
             wr = w[b, k, y - dy, x0 - dx : x0 - dx + n]
             for c in range(nc):
-                o = out[b, c, y, x0 : x0 + n]
+                zi = z[b, c, y, x0 : x0 + n]
                 zj = z[b, c, y - dy, x0 - dx : x0 - dx + n]
-                if square:
-                    for t in range(n):
-                        o[t] -= wr[t] * wr[t] * zj[t]
-                else:
-                    for t in range(n):
-                        o[t] -= wr[t] * zj[t]
+                _accumulate(out[b, c, y, x0 : x0 + n], wr, zi, zj, n, square, degree)
+
+
+@njit(inline="always")
+def _accumulate(a, wr, zi, zj, n, square, degree):  # pragma: no cover - compiled
+    if degree:
+        if square:
+            for t in range(n):
+                a[t] += wr[t] * wr[t]
+        else:
+            for t in range(n):
+                a[t] += wr[t]
+    elif square:
+        for t in range(n):
+            a[t] += wr[t] * wr[t] * (zi[t] - zj[t])
+    else:
+        for t in range(n):
+            a[t] += wr[t] * (zi[t] - zj[t])
 
 
 def _matting_weights(qp, img, dys, dxs, out, r0, r1):  # pragma: no cover - compiled
@@ -216,9 +222,8 @@ def _mask_row(mask, b, y, dy, dx, x0, n, o):  # pragma: no cover - compiled
 
 
 _jit = njit(nogil=True, cache=True, fastmath=True, boundscheck=False)
-gather = _jit(_gather)
-gather_parallel = njit(parallel=True, nogil=True, cache=True, fastmath=True, boundscheck=False)(
-    _gather_all
-)
+# the product keeps IEEE semantics: no reassociation of its float64 sums
+gather = njit(nogil=True, cache=True, boundscheck=False)(_gather)
+gather_parallel = njit(parallel=True, nogil=True, cache=True, boundscheck=False)(_gather_all)
 matting_weights = _jit(_matting_weights)
 affinity = _jit(_affinity)
