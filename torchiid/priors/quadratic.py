@@ -138,7 +138,9 @@ class StencilQuadratic(QuadraticTerm):
         """``M^T W M x = deg * x - sum_o w_o * shift_o(x)`` with shifted slices.
 
         One fused ``addcmul`` per direction of each offset (``2K`` in all) on cached
-        per-direction weights; no sparse matrix, no ``(B, K, H, W)`` temporaries.
+        per-direction weights; no sparse matrix, no ``(B, K, H, W)`` temporaries. On CPU
+        tensors outside autograd the compiled one-pass kernel computes the same product
+        (:func:`torchiid.priors.kernels.stencil_product`).
         """
         self._check(x)
         if kernels.usable(x, self.weights):

@@ -341,7 +341,9 @@ class StencilL1Term(_L1Term):
         """``Mᵀ diag(v²) M z = deg ⊙ z − Σ_k v²_k ⊙ (shift_k(z) + shift_−k(z))``.
 
         Two fused in-place ``addcmul`` per offset, both reading the weight stored at the first
-        pixel of the pair, so nothing of size ``(B, K, H, W)`` is built per call.
+        pixel of the pair, so nothing of size ``(B, K, H, W)`` is built per call. On CPU
+        tensors outside autograd the compiled one-pass kernel computes the same product, the
+        weights squared on the fly (:func:`torchiid.priors.kernels.stencil_product`).
 
         Shape:
             ``(B, C, H, W) -> (B, C, H, W)``.
