@@ -34,7 +34,7 @@ def torch_ops(monkeypatch):
 
     def run(fn):
         with monkeypatch.context() as m:
-            m.setattr(kernels, "usable", lambda *t: False)
+            m.setattr(kernels, "usable", lambda *t, **k: False)
             return fn()
 
     return run
@@ -87,6 +87,10 @@ def test_matting_stencil_matches_torch_with_mask(torch_ops):
     )
 
 
+@pytest.mark.skipif(
+    kernels._numba() is None or kernels._numba()[0].config.NUMBA_NUM_THREADS < 2,
+    reason="needs numba with 2 threads",
+)
 def test_result_does_not_depend_on_the_thread_count(monkeypatch):
     monkeypatch.setattr(kernels, "PARALLEL_WORK", 0)
     g = torch.Generator().manual_seed(3)
@@ -95,9 +99,9 @@ def test_result_does_not_depend_on_the_thread_count(monkeypatch):
     z = torch.rand(1, 3, 40, 31, generator=g)
     before = torch.get_num_threads()
     try:
-        torch.set_num_threads(1)  # one band, on this thread
+        torch.set_num_threads(1)  # the serial kernel
         one = StencilL1Term(st, w).normal_matvec(z)
-        torch.set_num_threads(2)  # two bands, one of them on the pool
+        torch.set_num_threads(2)  # the parallel one, on numba's pool
         two = StencilL1Term(st, w).normal_matvec(z)
     finally:
         torch.set_num_threads(before)
@@ -172,3 +176,36 @@ def test_a_forked_child_gets_its_own_band_pool(monkeypatch):
     second = kernels._executor(1)
     assert second is not first
     assert second.submit(lambda: 7).result() == 7
+
+
+def test_inputs_the_kernels_do_not_handle_keep_the_torch_results(torch_ops):
+    from torchiid.priors.reflectance_terms import merged_stencil_affinity, stencil_affinity
+
+    g = torch.Generator().manual_seed(6)
+    # a mask of batch 1 over a batch of 3 is broadcast
+    feats = torch.rand(3, 3, 16, 16, generator=g) * 0.1
+    mask = torch.rand(1, 1, 16, 16, generator=g) > 0.3
+    st = Stencil.square(16, 16, 5)
+    fast = stencil_affinity(feats, st, 0.05, mask)
+    torch.testing.assert_close(fast, torch_ops(lambda: stencil_affinity(feats, st, 0.05, mask)))
+    # offsets pointing up (dy < 0) are left to the torch ops
+    up = Stencil(6, 7, [(-1, 0), (-2, 1)])
+    assert not kernels.usable(feats, offsets=up.offsets)
+    w = torch.rand(1, 2, 6, 7, generator=g)
+    x = torch.rand(1, 1, 6, 7, generator=g)
+    dense = StencilQuadratic(up, w).to_sparse().to_dense()
+    torch.testing.assert_close(StencilQuadratic(up, w).matvec(x).reshape(-1), dense @ x.reshape(-1))
+    # weights of batch 1 for unknowns of batch 2 (broadcast by the torch ops)
+    st11 = Stencil.square(16, 16, 11)
+    w1 = torch.rand(1, st11.num_offsets, 16, 16, generator=g)
+    z2 = torch.rand(2, 3, 16, 16, generator=g)
+    fast = StencilL1Term(st11, w1).normal_matvec(z2)
+    torch.testing.assert_close(fast, torch_ops(lambda: StencilL1Term(st11, w1).normal_matvec(z2)))
+    assert torch.isfinite(fast).all()
+    # a non-contiguous out receives the result
+    colour = torch.rand(1, 3, 16, 16, generator=g) * 0.1
+    sem = torch.rand(1, st.num_offsets, 16, 16, generator=g)
+    out = torch.empty(1, 16, 16, st.num_offsets).permute(0, 3, 1, 2)
+    got = merged_stencil_affinity(colour, sem, st, 0.05, 2.0, 20.0, out=out)
+    assert got is out
+    torch.testing.assert_close(out, merged_stencil_affinity(colour, sem, st, 0.05, 2.0, 20.0))

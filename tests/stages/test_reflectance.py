@@ -6,7 +6,12 @@ from torchiid.priors.reflectance_terms import COLOUR_WEIGHTS, lab_features, sten
 from torchiid.priors.representatives import global_pair_term, representative_pixels
 from torchiid.priors.stencil import Stencil
 from torchiid.stages.config import ReflectanceOptions, ReflectanceProblem, ReflectanceWeights
-from torchiid.stages.reflectance import ReflectanceCache, shading_from_ratio, solve_reflectance
+from torchiid.stages.reflectance import (
+    ReflectanceCache,
+    build_reflectance_terms,
+    shading_from_ratio,
+    solve_reflectance,
+)
 from torchiid.synthetic import mondrian
 
 
@@ -46,15 +51,17 @@ def test_cache_reuses_the_proposal_factor_and_changes_nothing():
     scaled = problem.replace(rho=0.9 * rho)  # new rho, same g̊
     cache = ReflectanceCache()
     first = solve_reflectance(problem, W, opts, cache=cache)
-    weights = cache.weights_buffer(rho, 12)  # the merged A/B weights' storage (5x5: 12 offsets)
     again = solve_reflectance(scaled, W, opts, cache=cache)
     assert cache.hits == 1
-    assert cache.weights_buffer(rho, 12) is weights  # written again in place, not reallocated
     torch.testing.assert_close(again.reflectance, solve_reflectance(scaled, W, opts).reflectance)
     torch.testing.assert_close(first.reflectance, solve_reflectance(problem, W, opts).reflectance)
     gpca.mul_(2.0)  # modified in place: the factor is recomputed, not reused
     solve_reflectance(problem, W, opts, cache=cache)
     assert cache.hits == 1
+    # the merged A/B weights of both builds live in one storage, written again in place
+    built = [build_reflectance_terms(p, W, opts, cache=cache) for p in (problem, scaled)]
+    ptrs = {b.terms["A+B"][1].weights.data_ptr() for b in built}
+    assert len(ptrs) == 1 and ptrs == {cache.weights_buffer(rho, 12).data_ptr()}
 
 
 def test_batch_equals_one_by_one():

@@ -19,7 +19,8 @@ The same one-pass kernels build the reflectance stage's 60-offset colour weights
 matting Laplacian's stencil (once per alternation each).
 
 Threads: as many as torch uses (``torch.get_num_threads()``). The stencil product runs on
-numba's thread pool; the weight builders split the image's rows into bands and run them at
+numba's thread pool, one call at a time (numba's fallback threading layer aborts on
+concurrent calls); the weight builders split the image's rows into bands and run them at
 once on a small Python thread pool (the kernels release the GIL). Small calls and one-thread
 processes run on the calling thread only. Each output element is computed by one thread in
 a fixed order, so the result does not depend on the number of threads.
@@ -69,9 +70,15 @@ def _numba():
     return numba, stencil_kernels
 
 
-def usable(*tensors: torch.Tensor) -> bool:
-    """Whether the compiled kernel applies to these tensors (see the module notes)."""
+def usable(*tensors: torch.Tensor, offsets: list[tuple[int, int]] | None = None) -> bool:
+    """Whether the compiled kernels apply to these tensors (see the module notes).
+
+    With ``offsets``, also whether they are half offsets (``dy >= 0``), the only ones the
+    kernels handle (:func:`~torchiid.priors.stencil.half_offsets` gives such).
+    """
     if _numba() is None:
+        return False
+    if offsets is not None and any(dy < 0 for dy, _ in offsets):
         return False
     dtype = tensors[0].dtype
     if dtype not in (torch.float32, torch.float64):
@@ -99,8 +106,8 @@ def stencil_product(
 ) -> torch.Tensor:
     """``Mᵀ diag(w) M x``: ``Σ_k w_k(i) (x_i − x_{i+o_k}) + Σ_k w_k(i − o_k) (x_i − x_{i−o_k})``.
 
-    One pass, accumulated in float64 (see :mod:`torchiid.priors.stencil_kernels`); only the
-    pairs inside the image are read.
+    One pass, summed in the input's dtype in difference form (see the module notes); only
+    the pairs inside the image are read. ``x`` and ``weights`` must have the same batch size.
 
     Args:
         x: ``(B, C, H, W)``.
@@ -119,7 +126,7 @@ def stencil_degree(
 ) -> torch.Tensor:
     """Each pixel's summed pair weights ``Σ_k w_k(i) + Σ_k w_k(i − o_k)`` over the pairs inside.
 
-    ``(B, K, H, W) -> (B, 1, H, W)``, summed in float64.
+    ``(B, K, H, W) -> (B, 1, H, W)``, summed in the weights' dtype.
     """
     b, _, h, w = weights.shape
     shape_only = torch.empty(b, 1, h, w, dtype=weights.dtype)
@@ -136,8 +143,11 @@ def _gather(x, weights, offsets, square: bool, degree: bool) -> torch.Tensor:
     if n <= 1:
         kernel.gather(*args, 0, b * h)
     else:  # numba's pool: a cheaper hand-off than bands for a sub-millisecond call
-        numba.set_num_threads(n if x.numel() * 2 * len(offsets) >= PARALLEL_WORK else 1)
-        kernel.gather_parallel(*args)
+        # one caller at a time: numba's fallback threading layer (workqueue, where neither
+        # OpenMP nor TBB is available) aborts the process on concurrent parallel calls
+        with _parallel_lock:
+            numba.set_num_threads(n if x.numel() * 2 * len(offsets) >= PARALLEL_WORK else 1)
+            kernel.gather_parallel(*args)
     return out
 
 
@@ -145,6 +155,7 @@ def _gather(x, weights, offsets, square: bool, degree: bool) -> torch.Tensor:
 #: the pool costs more than it saves
 PARALLEL_WORK = 1 << 21
 
+_parallel_lock = threading.Lock()
 _pool_lock = threading.Lock()
 _pool: tuple[int, int, ThreadPoolExecutor] | None = None  # (pid, workers, pool)
 
@@ -154,6 +165,8 @@ def _executor(workers: int) -> ThreadPoolExecutor:
     global _pool
     with _pool_lock:
         if _pool is None or _pool[0] != os.getpid() or _pool[1] < workers:
+            if _pool is not None and _pool[0] == os.getpid():
+                _pool[2].shutdown(wait=False)  # a smaller pool: let its threads end
             _pool = (os.getpid(), workers, ThreadPoolExecutor(workers, "torchiid-kernel"))
         return _pool[2]
 
@@ -213,7 +226,8 @@ def stencil_affinity(
 
     Without ``semantic`` the factor is 1. Pairs leaving the image, or touching a pixel outside
     ``mask``, get 0. One pass over the offsets, the output written once (no zero fill first),
-    into ``out`` when given (contiguous, ``(B, K, H, W)``, the features' dtype).
+    into ``out`` when given (``(B, K, H, W)``, the features' dtype; a non-contiguous one
+    receives a copy).
 
     Shape:
         features ``(B, D, H, W)``, semantic ``(B, K, H, W)``, mask ``(B, 1, H, W)`` bool ->
@@ -223,11 +237,16 @@ def stencil_affinity(
     dys, dxs = _offsets(tuple(offsets))
     b, d, h, w = features.shape
     dt = features.dtype
+    given = out
     if out is None or not out.is_contiguous():
         out = torch.empty(b, len(offsets), h, w, dtype=dt)
     none = torch.empty(0, 0, 0, 0, dtype=dt)
-    sem = none if semantic is None else semantic.contiguous()
-    m = torch.empty(0, 0, 0, 0, dtype=torch.bool) if mask is None else mask.contiguous()
+    # a mask or factor of batch 1 is broadcast, as the torch ops do (the kernel indexes both
+    # per image); other shapes raise here, not inside the kernel
+    sem = none if semantic is None else semantic.expand(out.shape).contiguous()
+    m = torch.empty(0, 0, 0, 0, dtype=torch.bool)
+    if mask is not None:
+        m = mask.to(torch.bool).expand(b, 1, h, w).contiguous()
     np_dt = out.numpy().dtype.type
     args = (
         features.contiguous().numpy(),
@@ -241,4 +260,6 @@ def stencil_affinity(
         out.numpy(),
     )
     _run(kernel.affinity, args, b * h, b * h * w * len(offsets) * (d + 8))
+    if given is not None and given is not out:
+        return given.copy_(out)
     return out

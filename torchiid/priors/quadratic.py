@@ -143,7 +143,7 @@ class StencilQuadratic(QuadraticTerm):
         (:func:`torchiid.priors.kernels.stencil_product`).
         """
         self._check(x)
-        if kernels.usable(x, self.weights):
+        if kernels.usable(x, self.weights, offsets=self.stencil.offsets):
             return kernels.stencil_product(x, self.weights, self.stencil.offsets)
         ops, _, deg = self._directed()
         out = deg * x

@@ -132,7 +132,8 @@ def stencil_affinity(
     _check_t(t)
     b, _, h, w = features.shape
     scale = -1.0 / (2.0 * t * t)
-    if kernels.usable(features) and (mask is None or mask.device.type == "cpu"):
+    cpu_mask = mask is None or mask.device.type == "cpu"
+    if kernels.usable(features, offsets=stencil.offsets) and cpu_mask:
         return kernels.stencil_affinity(features, stencil.offsets, scale, mask=_bool(mask))
     out = features.new_zeros(b, stencil.num_offsets, h, w)
     for k, (dy, dx) in enumerate(stencil.offsets):
@@ -184,7 +185,8 @@ def merged_stencil_affinity(
     shape = (b, stencil.num_offsets, h, w)
     if out is not None and (out.shape != shape or out.dtype != colour.dtype):
         raise ShapeError(f"out has shape {tuple(out.shape)} / {out.dtype}, expected {shape}")
-    if kernels.usable(colour, semantic_affinity) and (mask is None or mask.device.type == "cpu"):
+    cpu_mask = mask is None or mask.device.type == "cpu"
+    if kernels.usable(colour, semantic_affinity, offsets=stencil.offsets) and cpu_mask:
         return kernels.stencil_affinity(
             colour, stencil.offsets, sc, semantic_affinity, a_l, a_m, mask=_bool(mask), out=out
         )
@@ -328,7 +330,7 @@ class StencilL1Term(_L1Term):
     @cached_property
     def _degree(self) -> torch.Tensor:
         """Weighted degree ``Σ_j v²_ij`` over both directions of every pair, ``(B, 1, H, W)``."""
-        if kernels.usable(self.weights):
+        if kernels.usable(self.weights, offsets=self.stencil.offsets):
             return kernels.stencil_degree(self.weights, self.stencil.offsets, square=True)
         return self.stencil.laplacian_diagonal(self.weights.square(), zero_invalid=False)
 
@@ -348,7 +350,8 @@ class StencilL1Term(_L1Term):
         Shape:
             ``(B, C, H, W) -> (B, C, H, W)``.
         """
-        if kernels.usable(z, self.weights):
+        same_batch = z.shape[0] == self.weights.shape[0]  # else the torch ops broadcast
+        if same_batch and kernels.usable(z, self.weights, offsets=self.stencil.offsets):
             return kernels.stencil_product(z, self.weights, self.stencil.offsets, square=True)
         out = self._degree * z
         for k, (yi, xi, yj, xj) in self._loop():
