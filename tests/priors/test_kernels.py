@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from torchiid.core.exceptions import ShapeError
 from torchiid.priors import kernels
 from torchiid.priors.matting import MattingQuadratic
 from torchiid.priors.quadratic import StencilQuadratic
@@ -209,3 +210,5 @@ def test_inputs_the_kernels_do_not_handle_keep_the_torch_results(torch_ops):
     got = merged_stencil_affinity(colour, sem, st, 0.05, 2.0, 20.0, out=out)
     assert got is out
     torch.testing.assert_close(out, merged_stencil_affinity(colour, sem, st, 0.05, 2.0, 20.0))
+    with pytest.raises(ShapeError, match=r"out must be a torch.float32 tensor of shape"):
+        merged_stencil_affinity(colour, sem, st, 0.05, 2.0, 20.0, out=torch.empty(1, 3, 16, 16))

@@ -184,7 +184,10 @@ def merged_stencil_affinity(
     a_l, a_m = gamma_l / (gamma_l + gamma_m), gamma_m / (gamma_l + gamma_m)
     shape = (b, stencil.num_offsets, h, w)
     if out is not None and (out.shape != shape or out.dtype != colour.dtype):
-        raise ShapeError(f"out has shape {tuple(out.shape)} / {out.dtype}, expected {shape}")
+        raise ShapeError(
+            f"out must be a {colour.dtype} tensor of shape {shape} (batch, offsets, height, "
+            f"width), got {out.dtype} of shape {tuple(out.shape)}"
+        )
     cpu_mask = mask is None or mask.device.type == "cpu"
     if kernels.usable(colour, semantic_affinity, offsets=stencil.offsets) and cpu_mask:
         return kernels.stencil_affinity(

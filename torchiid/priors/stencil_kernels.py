@@ -50,16 +50,14 @@ def _gather_row(z, w, dys, dxs, out, square, degree, r):  # pragma: no cover - c
         dy = dys[k]
         dx = dxs[k]
         if y + dy < h:  # i = (y, x) with partner j = i + (dy, dx), weight at i
-            x0 = max(0, -dx)
-            n = min(wd, wd - dx) - x0
+            x0, n = _span(dx, wd)
             wr = w[b, k, y, x0 : x0 + n]
             for c in range(nc):
                 zi = z[b, c, y, x0 : x0 + n]
                 zj = z[b, c, y + dy, x0 + dx : x0 + dx + n]
                 _accumulate(out[b, c, y, x0 : x0 + n], wr, zi, zj, n, square, degree)
         if y - dy >= 0:  # i = (y, x) as the partner of j = i − (dy, dx), weight at j
-            x0 = max(0, dx)
-            n = min(wd, wd + dx) - x0
+            x0, n = _span(-dx, wd)
             wr = w[b, k, y - dy, x0 - dx : x0 - dx + n]
             for c in range(nc):
                 zi = z[b, c, y, x0 : x0 + n]
@@ -104,8 +102,7 @@ def _matting_weights(qp, img, dys, dxs, out, r0, r1):  # pragma: no cover - comp
             orow[:] = 0.0
             if y + dy >= h:
                 continue
-            x0 = max(0, -dx)
-            n = min(wd, wd - dx) - x0
+            x0, n = _span(dx, wd)
             # windows holding i = (y, x) and j = i + (dy, dx): padded rows y + dy .. y + 2,
             # padded columns max(x, x + dx) .. min(x, x + dx) + 2
             lo = x0 + max(0, dx)
@@ -161,47 +158,21 @@ def _affinity(
             orow[:] = 0.0
             if y + dy >= h:
                 continue
-            x0 = max(0, -dx)
-            n = min(wd, wd - dx) - x0
+            x0, n = _span(dx, wd)
             a = acc[:n]
-            if nd == 3:  # colour: one pass
-                fi0 = feat[b, 0, y, x0 : x0 + n]
-                fi1 = feat[b, 1, y, x0 : x0 + n]
-                fi2 = feat[b, 2, y, x0 : x0 + n]
-                fj0 = feat[b, 0, y + dy, x0 + dx : x0 + dx + n]
-                fj1 = feat[b, 1, y + dy, x0 + dx : x0 + dx + n]
-                fj2 = feat[b, 2, y + dy, x0 + dx : x0 + dx + n]
-                if use_sem:  # the merged A/B weights: all in one pass
-                    sm = sem[b, k, y, x0 : x0 + n]
-                    o = orow[x0 : x0 + n]
-                    for t in range(n):
-                        e0 = fi0[t] - fj0[t]
-                        e1 = fi1[t] - fj1[t]
-                        e2 = fi2[t] - fj2[t]
-                        v = (e0 * e0 + e1 * e1 + e2 * e2) * scale
-                        # below e^-80 the weight is 0 anyway: no denormals, no slow path
-                        o[t] = (a_l + a_m * sm[t]) * np.exp(v) if v > -80 else 0
-                    if use_mask:
-                        _mask_row(mask, b, y, dy, dx, x0, n, o)
-                    continue
+            a[:] = 0.0
+            for d in range(nd):  # squared feature distance of each pair
+                fi = feat[b, d, y, x0 : x0 + n]
+                fj = feat[b, d, y + dy, x0 + dx : x0 + dx + n]
                 for t in range(n):
-                    e0 = fi0[t] - fj0[t]
-                    e1 = fi1[t] - fj1[t]
-                    e2 = fi2[t] - fj2[t]
-                    a[t] = e0 * e0 + e1 * e1 + e2 * e2
-            else:
-                a[:] = 0.0
-                for d in range(nd):
-                    fi = feat[b, d, y, x0 : x0 + n]
-                    fj = feat[b, d, y + dy, x0 + dx : x0 + dx + n]
-                    for t in range(n):
-                        e = fi[t] - fj[t]
-                        a[t] += e * e
+                    e = fi[t] - fj[t]
+                    a[t] += e * e
             o = orow[x0 : x0 + n]
             if use_sem:
                 sm = sem[b, k, y, x0 : x0 + n]
                 for t in range(n):
                     v = a[t] * scale
+                    # below e^-80 the weight is 0 anyway: no denormals
                     o[t] = (a_l + a_m * sm[t]) * np.exp(v) if v > -80 else 0
             else:
                 for t in range(n):
@@ -210,6 +181,13 @@ def _affinity(
             if use_mask:
                 _mask_row(mask, b, y, dy, dx, x0, n, o)
     return out
+
+
+@njit(inline="always")
+def _span(dx, wd):  # pragma: no cover - compiled
+    """``(x0, n)``: the first column and the count of pixels ``i`` whose ``i + dx`` is inside."""
+    x0 = max(0, -dx)
+    return x0, min(wd, wd - dx) - x0
 
 
 @njit(inline="always")
@@ -222,7 +200,7 @@ def _mask_row(mask, b, y, dy, dx, x0, n, o):  # pragma: no cover - compiled
 
 
 _jit = njit(nogil=True, cache=True, fastmath=True, boundscheck=False)
-# the product keeps IEEE semantics: no reassociation of its float64 sums
+# the product keeps IEEE semantics (no reassociation of its sums)
 gather = njit(nogil=True, cache=True, boundscheck=False)(_gather)
 gather_parallel = njit(parallel=True, nogil=True, cache=True, boundscheck=False)(_gather_all)
 matting_weights = _jit(_matting_weights)
