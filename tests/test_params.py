@@ -11,6 +11,7 @@ def test_paper_preset_has_the_papers_values():
     assert (p.lambda_g, p.lambda_m, p.lambda_l, p.lambda_s) == (0.02, 0.02, 2.0, 0.0)
     assert (p.gamma_g, p.gamma_m, p.gamma_l, p.theta, p.tau) == (2.0, 20.0, 20.0, 40.0, 1.2)
     assert (p.t_c, p.t_m, p.t_b, p.t, p.iterations) == (1e-4, 0.05, 0.05, 0.05, 5)
+    assert (p.t_i, p.t_e) == (0.0, 0.0)
     assert (p.patch_size, p.patch_stride, p.lle_k) == (60, 30, 10)
 
 
@@ -23,6 +24,7 @@ def test_default_preset_differs_from_paper_only_where_tuned():
         "bregman_cg_iter",
         "lambda_m",  # re-tuned with S_s
         "lambda_s",  # S_s is not one of the paper's priors
+        "t_e",  # nor is S_l's cut beside colour edges
     }
     # the no-argument object is what decompose() does by default
     assert Parameters.preset("default") == Parameters()

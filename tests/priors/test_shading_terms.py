@@ -5,6 +5,7 @@ import torch
 
 from torchiid.core.exceptions import ImageError, ParameterError, ShapeError
 from torchiid.priors.shading_terms import (
+    edge_confidence,
     midlevel_term,
     retinex_term,
     retinex_weights,
@@ -179,3 +180,56 @@ def test_intensity_factor_cuts_same_hue_edges_only():
     assert float(on[0, 0, 0, 1]) < 1e-3
     with pytest.raises(ParameterError, match="t_i"):
         retinex_weights(img, st, t_i=-1.0)
+
+
+def test_edge_confidence_marks_the_pixels_beside_a_colour_edge():
+    # green | cream: the columns on either side of the edge are marked, the rest are not;
+    # a brightness step of one colour is not a colour edge
+    img = torch.empty(1, 3, 4, 8)
+    img[..., :4] = torch.tensor([0.1, 0.3, 0.1]).view(3, 1, 1)
+    img[..., 4:] = torch.tensor([0.8, 0.75, 0.55]).view(3, 1, 1)
+    img[..., 6:] *= 0.3
+    e = edge_confidence(img, 0.015)[0, 0]
+    assert torch.all(e[:, 3:5] < 1e-6)
+    assert torch.all(e[:, [0, 1, 2, 5, 6, 7]] == 1)
+    # neighbours outside the mask do not count (the outside of a masked object is black)
+    mask = torch.ones(1, 1, 4, 8, dtype=torch.bool)
+    mask[..., :4] = False
+    inside = edge_confidence(img * mask, 0.015, mask=mask)[0, 0]
+    assert torch.all(inside[:, 4:] == 1)
+    assert float(edge_confidence(img * mask, 0.015)[0, 0, 0, 4]) < 0.6  # black vs cream
+    # S_l's pairs touching a marked pixel lose their weight
+    st = shading_stencil(4, 8)
+    off = retinex_weights(img, st)
+    on = retinex_weights(img, st, t_e=0.015)
+    right = [0, 2, 3]  # offsets (0, 1), (1, 0), (1, 1): from column 5 on, away from the edge
+    assert torch.equal(on[:, right, :, 5:], off[:, right, :, 5:]) and float(off[0, 0, 1, 5]) > 0.99
+    # pairs (1, 4)-(1, 5) and (1, 2)-(1, 3), one colour each, touch a marked pixel
+    assert float(on[0, 0, 1, 4]) < 1e-12 and float(on[0, 0, 1, 2]) < 1e-12
+    assert float(off[0, 0, 1, 4]) > 0.99 and float(off[0, 0, 1, 2]) > 0.99
+    with pytest.raises(ParameterError, match="t_e"):
+        edge_confidence(img, 0.0)
+    with pytest.raises(ParameterError, match="t_e"):
+        retinex_weights(img, st, t_e=-1.0)
+
+
+def test_a_pair_cut_by_its_colour_asks_for_no_step_at_partial_confidence():
+    # green | white; the pair across the edge is cut by its colour. At partial confidence c it
+    # is half a smoothness tie: weight (1 - c) per unit dark factor, target 0 (no share of the
+    # intensity step). A pair within one colour keeps its full target at any confidence
+    img = torch.empty(1, 3, 1, 4)
+    img[..., :2] = torch.tensor([0.15, 0.45, 0.15]).view(3, 1, 1)
+    img[..., 2:] = 0.8
+    img[..., 3] *= 0.9
+    st = shading_stencil(1, 4)
+    conf = torch.full((1, 1, 1, 4), 0.5)
+    full = retinex_term(img, st)
+    half = retinex_term(img, st, confidence=conf)
+    dark = 1 + math.exp(-(0.25**2 + 0.8**2) / 0.05**2)
+    assert float(full.weights[0, 0, 0, 1]) < 1e-12
+    assert float(half.weights[0, 0, 0, 1]) == pytest.approx(0.5 * dark, rel=1e-4)
+    assert float(half.weighted_target[0, 0, 0, 1]) == pytest.approx(0.0, abs=1e-9)
+    # (0, 2)-(0, 3): one colour, both asks agree on the weight; the target is 0.5 * log 0.9 / 1
+    assert float(half.weights[0, 0, 0, 2]) == pytest.approx(float(full.weights[0, 0, 0, 2]))
+    want = 0.5 * math.log(1 / 0.9) * float(full.weights[0, 0, 0, 2])
+    assert float(half.weighted_target[0, 0, 0, 2]) == pytest.approx(want, rel=1e-4)

@@ -286,3 +286,27 @@ def test_smoothness_decides_the_shading_step_across_a_chromaticity_edge():
     assert abs(ratio / true_ratio - 1) < 0.05
     step0, ratio0 = results[0.0]
     assert step0 < -0.3 and abs(ratio0 / true_ratio - 1) > 0.3  # what S_s fixes
+
+
+def test_edge_confidence_keeps_a_mixed_pixel_from_moving_a_bright_print_into_the_shading():
+    # dark green | one mixed pixel (0.4 cream + 0.6 green) | cream, under light that brightens
+    # smoothly. The mixed pixel has nearly cream's chromaticity but 2.5x less light, so S_l ties
+    # it to the cream and asks the shading to step by log 2.5 there; t_e cuts that pair
+    h, w = 24, 48
+    x = torch.linspace(0, 1, w, dtype=torch.float64).view(1, 1, 1, w).expand(1, 1, h, w)
+    shade = 0.3 + 0.6 * x
+    green = torch.tensor([0.006, 0.018, 0.008], dtype=torch.float64).view(1, 3, 1, 1)
+    cream = torch.tensor([0.8, 0.75, 0.55], dtype=torch.float64).view(1, 3, 1, 1)
+    alpha = torch.zeros(1, 1, 1, w, dtype=torch.float64)
+    alpha[..., w // 2 :] = 1.0
+    alpha[..., w // 2 - 1] = 0.4
+    problem = ShadingProblem(((1 - alpha) * green + alpha * cream) * shade)
+    weights = ShadingWeights(lambda_c=0, lambda_p=0, lambda_m=0, lambda_s=0.01)
+    errors = {}
+    for t_e in (0.0, 0.015):
+        res = solve_shading(problem, weights, ShadingOptions(tol=1e-10, max_iter=5000, t_e=t_e))
+        assert res.diagnostics.converged
+        err = res.log_shading[0, 0] - shade[0, 0].log()
+        errors[t_e] = float(err[:, w // 2 + 2 :].mean() - err[:, : w // 2 - 3].mean())
+    assert errors[0.0] > 0.5  # the cream side's light comes out 2x too bright
+    assert abs(errors[0.015]) < 0.15

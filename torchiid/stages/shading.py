@@ -449,8 +449,11 @@ def build_shading_system(
                     pixel_confidence(image, o.dark_level, o.clip_level) if confident else None
                 ),
                 t_i=o.t_i,
+                t_e=o.t_e,
             ),
-            input_key(given, o.t_c, o.t_b, o.t_i, o.dark_eps, o.dark_level, o.clip_level, mask),
+            input_key(
+                given, o.t_c, o.t_b, o.t_i, o.t_e, o.dark_eps, o.dark_level, o.clip_level, mask
+            ),
         )
     if weights.lambda_s > 0:
         timed(
