@@ -15,6 +15,12 @@ def test_paper_preset_has_the_papers_values():
     assert (p.patch_size, p.patch_stride, p.lle_k) == (60, 30, 10)
 
 
+def test_print_preset_differs_from_default_only_in_t_d():
+    default, printed = Parameters().to_dict(), Parameters.preset("print").to_dict()
+    assert {k for k in default if default[k] != printed[k]} == {"t_d"}
+    assert printed["t_d"] == 0.5 and Parameters.preset("converged").t_d == 0.0
+
+
 def test_default_preset_differs_from_paper_only_where_tuned():
     paper, default = Parameters.preset("paper").to_dict(), Parameters.preset("default").to_dict()
     assert {k for k in paper if paper[k] != default[k]} == {

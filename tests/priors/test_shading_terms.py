@@ -233,3 +233,20 @@ def test_a_pair_cut_by_its_colour_asks_for_no_step_at_partial_confidence():
     assert float(half.weights[0, 0, 0, 2]) == pytest.approx(float(full.weights[0, 0, 0, 2]))
     want = 0.5 * math.log(1 / 0.9) * float(full.weights[0, 0, 0, 2])
     assert float(half.weighted_target[0, 0, 0, 2]) == pytest.approx(want, rel=1e-4)
+
+
+def test_brightness_steps_are_marked_only_with_t_d():
+    # black ink | white paper, one chromaticity: t_e alone sees no edge, t_d marks both sides
+    img = torch.full((1, 3, 3, 6), 0.8)
+    img[..., :3] = 0.03
+    assert torch.all(edge_confidence(img, 0.015) == 1)
+    marks = edge_confidence(img, 0.015, t_d=0.5)[0, 0]
+    assert torch.all(marks[:, 2:4] < 1e-6) and torch.all(marks[:, [0, 1, 4, 5]] == 1)
+    assert torch.equal(edge_confidence(img, 0.0, t_d=0.5), edge_confidence(img, 0.015, t_d=0.5))
+    # a gentle ramp of light (10% per pixel, log step 0.095) is barely marked
+    ramp = 0.5 * 1.1 ** torch.arange(6.0).view(1, 1, 1, 6).expand(1, 3, 3, 6)
+    assert float(edge_confidence(ramp, 0.0, t_d=0.5).min()) > 0.96
+    with pytest.raises(ParameterError, match="t_d"):
+        edge_confidence(img, 0.0)
+    with pytest.raises(ParameterError, match="t_d"):
+        retinex_weights(img, shading_stencil(3, 6), t_d=-1.0)

@@ -50,7 +50,10 @@ def add_parameter_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--preset",
         default="default",
-        help="parameter preset: default, paper or converged (every solve to tolerance)",
+        help=(
+            "parameter preset: default, print (photos of flat printed matter: documents, "
+            "labels), paper or converged (every solve to tolerance)"
+        ),
     )
     p.add_argument("--params", type=Path, help="JSON file of parameters (over the preset)")
     p.add_argument("--variant", help="ablation variant v1..v7 or baseline1..baseline3")

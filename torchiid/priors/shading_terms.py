@@ -182,12 +182,17 @@ def edge_confidence(
     t_e: float,
     dark_eps: float = 1e-4,
     mask: torch.Tensor | None = None,
+    t_d: float = 0.0,
 ) -> torch.Tensor:
-    """How far each pixel is from a chromaticity edge, ``(B, 3, H, W) -> (B, 1, H, W)`` in [0, 1].
+    """How far each pixel is from a material edge, ``(B, 3, H, W) -> (B, 1, H, W)`` in [0, 1].
 
-    ``exp(-e_i^2 / t_e^2)`` with ``e_i = max_j (1 - <pbar_i, pbar_j>)`` over the 8 neighbours
+    ``exp(-e_i^2)`` with ``e_i = max_j (1 - <pbar_i, pbar_j>) / t_e`` over the 8 neighbours
     ``j`` (inside ``mask``, if given): 1 inside a region of one chromaticity, about 0 on a
     pixel beside a colour edge (``t_e`` 0.015: a 10 degree change gives 0.36, 5 degrees 0.94).
+    With ``t_d > 0`` a step of log-intensity also counts: ``e_i`` is the larger of that and
+    ``max_j |log p_i - log p_j| / t_d``, so pixels beside a sharp brightness step (black text
+    on white paper: ``t_d`` 0.5 marks steps of more than about 1.6x) are marked too.
+    ``t_e = 0`` or ``t_d = 0`` leaves that kind out.
 
     Such a pixel often mixes the two materials, and a mixture of a bright and a dark colour
     has nearly the bright one's chromaticity at a fraction of its light: ``0.4 * cream +
@@ -197,15 +202,21 @@ def edge_confidence(
     whole level into the shading (MIT's teabag2: its cream oval came out 1.7x brighter in the
     shading than the green around it). :func:`retinex_term` with ``t_e > 0`` multiplies
     ``S_l``'s weights by ``min(e_i, e_j)``, so the shading's level across a colour edge is left
-    to the other priors (``S_s``, ``S_m``, ``S_c``).
+    to the other priors (``S_s``, ``S_m``, ``S_c``). A sharp brightness step of one colour is
+    print as often as it is a shadow's or a crease's edge; ``t_d`` takes it for print (the
+    ``print`` preset, for flat printed matter).
     """
-    if t_e <= 0:
-        raise ParameterError(f"t_e must be > 0, got {t_e}")
-    chrom = image.clamp_min(dark_eps)
-    chrom = chrom / chrom.norm(dim=1, keepdim=True)
-    b, _, h, w = chrom.shape
-    padded = F.pad(chrom, (1, 1, 1, 1), mode="replicate")
-    inside = None
+    if t_e < 0 or t_d < 0 or not (t_e > 0 or t_d > 0):
+        raise ParameterError(f"t_e and t_d must be >= 0 and one > 0, got t_e={t_e}, t_d={t_d}")
+    b, _, h, w = image.shape
+    chrom = padded = logp = padded_log = inside = None
+    if t_e > 0:
+        chrom = image.clamp_min(dark_eps)
+        chrom = chrom / chrom.norm(dim=1, keepdim=True)
+        padded = F.pad(chrom, (1, 1, 1, 1), mode="replicate")
+    if t_d > 0:
+        logp = intensity(image, dark_eps).log()
+        padded_log = F.pad(logp, (1, 1, 1, 1), mode="replicate")
     if mask is not None:
         check_shape(mask, (b, 1, h, w), "mask")
         inside = F.pad(mask.to(image.dtype), (1, 1, 1, 1))
@@ -214,11 +225,16 @@ def edge_confidence(
         for dx in range(3):
             if dy == dx == 1:
                 continue
-            d = 1 - (chrom * padded[:, :, dy : dy + h, dx : dx + w]).sum(1, keepdim=True)
+            window = (slice(None), slice(None), slice(dy, dy + h), slice(dx, dx + w))
+            if chrom is not None:
+                d = (1 - (chrom * padded[window]).sum(1, keepdim=True)) / t_e
+            if logp is not None:
+                step = (logp - padded_log[window]).abs() / t_d
+                d = step if chrom is None else torch.maximum(d, step)
             if inside is not None:
-                d = d * inside[:, :, dy : dy + h, dx : dx + w]
+                d = d * inside[window]
             e = torch.maximum(e, d)
-    return torch.exp(-((e / t_e) ** 2))
+    return torch.exp(-(e**2))
 
 
 def _retinex_factors(
@@ -230,12 +246,15 @@ def _retinex_factors(
     t_i: float,
     t_e: float,
     mask: torch.Tensor | None,
+    t_d: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``S_l``'s colour factor (chromaticity, intensity, edge) and dark factor per pair."""
     if t_c <= 0 or t_b <= 0:
         raise ParameterError(f"t_c and t_b must be > 0, got t_c={t_c}, t_b={t_b}")
-    if t_i < 0 or t_e < 0:
-        raise ParameterError(f"t_i and t_e must be >= 0 (0: off), got t_i={t_i}, t_e={t_e}")
+    if t_i < 0 or t_e < 0 or t_d < 0:
+        raise ParameterError(
+            f"t_i, t_e and t_d must be >= 0 (0: off), got t_i={t_i}, t_e={t_e}, t_d={t_d}"
+        )
     chrom = image.clamp_min(dark_eps)
     chrom = chrom / chrom.norm(dim=1, keepdim=True)
     cos = (chrom.unsqueeze(2) * stencil.neighbours(chrom)).sum(1)  # (B, K, H, W)
@@ -246,8 +265,9 @@ def _retinex_factors(
     if t_i > 0:
         dlog = p.log() - pj.log()
         colour = colour * torch.exp(-(dlog**2) / t_i**2)
-    if t_e > 0:
-        colour = colour * pair_confidence(stencil, edge_confidence(image, t_e, dark_eps, mask))
+    if t_e > 0 or t_d > 0:
+        marks = edge_confidence(image, t_e, dark_eps, mask, t_d)
+        colour = colour * pair_confidence(stencil, marks)
     return colour, dark
 
 
@@ -261,6 +281,7 @@ def retinex_weights(
     t_i: float = 0.0,
     t_e: float = 0.0,
     mask: torch.Tensor | None = None,
+    t_d: float = 0.0,
 ) -> torch.Tensor:
     """Pair weights ``w^l`` of ``S_l`` (Eq. 5), ``(B, 3, H, W) -> (B, K, H, W)``.
 
@@ -269,13 +290,14 @@ def retinex_weights(
     ``exp(-(log p_i - log p_j)^2 / t_i^2)``: two neighbours of the same chromaticity but very
     different brightness (dark print on a light ground of its hue) are no longer declared the
     same material; their shading is left to the other, non-local priors (``t_i = 0``: the
-    paper's weights). With ``t_e > 0`` it is also multiplied by ``min(e_i, e_j)``
-    (:func:`edge_confidence`, neighbours inside ``mask``): pixels beside a colour edge are not
-    tied. With a pixel ``confidence`` (:func:`pixel_confidence`) and
-    ``c_ij = min(c_i, c_j)``, the colour factor becomes ``c_ij * factor + (1 - c_ij)``: a pair
-    without trustworthy colours (dark or clipped) is not cut apart by its noisy colour.
+    paper's weights). With ``t_e > 0`` or ``t_d > 0`` it is also multiplied by
+    ``min(e_i, e_j)`` (:func:`edge_confidence`, neighbours inside ``mask``): pixels beside a
+    colour edge (or a sharp brightness step) are not tied. With a pixel ``confidence``
+    (:func:`pixel_confidence`) and ``c_ij = min(c_i, c_j)``, the colour factor becomes
+    ``c_ij * factor + (1 - c_ij)``: a pair without trustworthy colours (dark or clipped) is not
+    cut apart by its noisy colour.
     """
-    colour, dark = _retinex_factors(image, stencil, t_c, t_b, dark_eps, t_i, t_e, mask)
+    colour, dark = _retinex_factors(image, stencil, t_c, t_b, dark_eps, t_i, t_e, mask, t_d)
     if confidence is not None:
         c = pair_confidence(stencil, confidence)
         colour = c * colour + (1 - c)
@@ -299,6 +321,7 @@ def retinex_term(
     confidence: torch.Tensor | None = None,
     t_i: float = 0.0,
     t_e: float = 0.0,
+    t_d: float = 0.0,
 ) -> StencilQuadratic:
     """The local Retinex prior ``S_l`` (Eq. 5) on the log-shading.
 
@@ -323,6 +346,7 @@ def retinex_term(
         t_i: intensity deviation (0: off, the paper's weights); see :func:`retinex_weights`.
         t_e: colour-edge deviation (0: off, the paper's weights): pairs touching a pixel
             beside a chromaticity edge are not tied (:func:`edge_confidence`).
+        t_d: brightness-step deviation of the same marks (0: off; the ``print`` preset).
 
     Returns:
         ``StencilQuadratic`` with target differences of ``log p``.
@@ -333,7 +357,7 @@ def retinex_term(
             f"image is {tuple(image.shape[-2:])} but the stencil is "
             f"{(stencil.height, stencil.width)}"
         )
-    colour, dark = _retinex_factors(image, stencil, t_c, t_b, dark_eps, t_i, t_e, mask)
+    colour, dark = _retinex_factors(image, stencil, t_c, t_b, dark_eps, t_i, t_e, mask, t_d)
     logp = intensity(image, dark_eps).log()
     target = stencil.apply(logp)[:, 0]
     if confidence is not None:

@@ -131,6 +131,8 @@ class ShadingOptions:
             :func:`~torchiid.priors.shading_terms.retinex_weights`).
         t_e: colour-edge deviation of ``S_l`` (0: off, the paper's weights; see
             :func:`~torchiid.priors.shading_terms.edge_confidence`).
+        t_d: brightness-step deviation of the same marks (0: off; see
+            :func:`~torchiid.priors.shading_terms.edge_confidence`).
         t_m: deviation of ``S_m`` (paper 0.05).
         matting_eps: Levin's ε of ``S_p`` (1e-5).
         dark_eps: floor of intensities before logs.
@@ -162,6 +164,7 @@ class ShadingOptions:
     t_b: float = 0.05
     t_i: float = 0.0
     t_e: float = 0.0
+    t_d: float = 0.0
     t_m: float = 0.05
     matting_eps: float = 1e-5
     dark_eps: float = 1e-4

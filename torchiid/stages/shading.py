@@ -450,9 +450,19 @@ def build_shading_system(
                 ),
                 t_i=o.t_i,
                 t_e=o.t_e,
+                t_d=o.t_d,
             ),
             input_key(
-                given, o.t_c, o.t_b, o.t_i, o.t_e, o.dark_eps, o.dark_level, o.clip_level, mask
+                given,
+                o.t_c,
+                o.t_b,
+                o.t_i,
+                o.t_e,
+                o.t_d,
+                o.dark_eps,
+                o.dark_level,
+                o.clip_level,
+                mask,
             ),
         )
     if weights.lambda_s > 0:
