@@ -309,8 +309,8 @@ def test_cli_note_tells_a_breakdown_from_a_cap():
 def test_print_preset_keeps_the_text_of_a_photographed_page_in_the_reflectance():
     # scikit-image's page: dark print on paper, unevenly lit. Print and paper have one
     # chromaticity, so the default's S_l ties them and the text goes to the shading (measured:
-    # ink/paper reflectance 0.957, shading 0.108, image 0.103); the print preset cuts S_l
-    # beside sharp brightness steps (t_d) and keeps it in the reflectance (0.154 and 0.685)
+    # ink/paper reflectance 0.957, shading 0.108, image 0.103); the print preset cuts S_l on
+    # thin strokes (t_h) and keeps it in the reflectance (0.150 and 0.689)
     from scipy.ndimage import median_filter
     from skimage import data
 

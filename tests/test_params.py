@@ -11,14 +11,15 @@ def test_paper_preset_has_the_papers_values():
     assert (p.lambda_g, p.lambda_m, p.lambda_l, p.lambda_s) == (0.02, 0.02, 2.0, 0.0)
     assert (p.gamma_g, p.gamma_m, p.gamma_l, p.theta, p.tau) == (2.0, 20.0, 20.0, 40.0, 1.2)
     assert (p.t_c, p.t_m, p.t_b, p.t, p.iterations) == (1e-4, 0.05, 0.05, 0.05, 5)
-    assert (p.t_i, p.t_e) == (0.0, 0.0)
+    assert (p.t_i, p.t_e, p.t_d, p.t_h) == (0.0, 0.0, 0.0, 0.0)
     assert (p.patch_size, p.patch_stride, p.lle_k) == (60, 30, 10)
 
 
-def test_print_preset_differs_from_default_only_in_t_d():
+def test_print_preset_differs_from_default_only_in_t_h():
     default, printed = Parameters().to_dict(), Parameters.preset("print").to_dict()
-    assert {k for k in default if default[k] != printed[k]} == {"t_d"}
-    assert printed["t_d"] == 0.5 and Parameters.preset("converged").t_d == 0.0
+    assert {k for k in default if default[k] != printed[k]} == {"t_h"}
+    assert printed["t_h"] == 0.5 and Parameters.preset("converged").t_h == 0.0
+    assert all(Parameters.preset(n).t_d == 0.0 for n in ("default", "print", "converged"))
 
 
 def test_default_preset_differs_from_paper_only_where_tuned():

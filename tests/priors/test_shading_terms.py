@@ -250,3 +250,24 @@ def test_brightness_steps_are_marked_only_with_t_d():
         edge_confidence(img, 0.0)
     with pytest.raises(ParameterError, match="t_d"):
         retinex_weights(img, shading_stencil(3, 6), t_d=-1.0)
+
+
+def test_thin_strokes_are_marked_with_t_h_but_steps_are_not():
+    # a 2 px dark line on paper, and a sharp step of light (a shadow's edge) elsewhere
+    img = torch.full((1, 3, 20, 16), 0.8)
+    img[..., 3:5, :] = 0.03  # the line
+    img[..., 12:, 8:] *= 0.2  # the step: one colour, 5x darker
+    marks = edge_confidence(img, 0.0, t_h=0.5)[0, 0]
+    assert torch.all(marks[2:6] < 1e-6)  # the line and the pixels beside it
+    assert torch.all(marks[7:] == 1) and torch.all(marks[:1] == 1)  # step and paper
+    # t_d marks the step's sides as well as the line's
+    assert float(edge_confidence(img, 0.0, t_d=0.5)[0, 0, 15, 7]) < 1e-3
+    # a thin masked object (a 3 px wide handle) against its blacked-out outside is not a
+    # stroke: the outside takes no part; without the mask it would be one
+    obj = torch.zeros(1, 3, 12, 16)
+    obj[..., 2:10, 6:9] = 0.6
+    mask = obj[:, :1] > 0
+    assert torch.all(edge_confidence(obj, 0.0, mask=mask, t_h=0.5)[mask] == 1)
+    assert float(edge_confidence(obj, 0.0, t_h=0.5)[0, 0, 5, 7]) < 1e-6
+    with pytest.raises(ParameterError, match="t_h"):
+        retinex_weights(img, shading_stencil(20, 16), t_h=-1.0)

@@ -312,26 +312,28 @@ def test_edge_confidence_keeps_a_mixed_pixel_from_moving_a_bright_print_into_the
     assert abs(errors[0.015]) < 0.15
 
 
-def test_t_d_keeps_black_print_out_of_the_shading():
+def test_t_d_and_t_h_keep_black_print_out_of_the_shading():
     # black bars on white paper (one chromaticity) under smooth light: S_l ties ink to paper
-    # and asks the shading to take the 28x step; with t_d the bars' level is left to S_s
+    # and asks the shading to take the 28x step; with t_d (brightness steps) or t_h (thin
+    # strokes) the bars' level is left to S_s
     h, w = 24, 48
     x = torch.linspace(0, 1, w, dtype=torch.float64).view(1, 1, 1, w).expand(1, 1, h, w)
     shade = 0.3 + 0.6 * x
     albedo = torch.full((1, 1, h, w), 0.85, dtype=torch.float64)
-    for x0 in (8, 20, 32):
-        albedo[..., x0 : x0 + 3] = 0.03
-        albedo[..., x0 - 1] = albedo[..., x0 + 3] = 0.4  # anti-aliased stroke edges
+    for x0 in (8, 20, 32):  # strokes 4 px wide in all, as lettering at 512 px
+        albedo[..., x0 : x0 + 2] = 0.03
+        albedo[..., x0 - 1] = albedo[..., x0 + 2] = 0.4  # anti-aliased stroke edges
     problem = ShadingProblem((albedo * shade).expand(1, 3, h, w).contiguous())
     weights = ShadingWeights(lambda_c=0, lambda_p=0, lambda_m=0, lambda_s=0.01)
     ink = (albedo < 0.1)[0, 0]
     paper = (albedo > 0.8)[0, 0]
     levels = {}
-    for t_d in (0.0, 0.5):
-        opts = ShadingOptions(tol=1e-10, max_iter=5000, t_e=0.015, t_d=t_d)
+    for name, marks in (("none", {}), ("t_d", {"t_d": 0.5}), ("t_h", {"t_h": 0.5})):
+        opts = ShadingOptions(tol=1e-10, max_iter=5000, t_e=0.015, **marks)
         res = solve_shading(problem, weights, opts)
         assert res.diagnostics.converged
         err = res.log_shading[0, 0] - shade[0, 0].log()
-        levels[t_d] = float(err[ink].mean() - err[paper].mean())
-    assert levels[0.0] < -2.5  # log(0.03 / 0.85) = -3.3: the print is in the shading
-    assert abs(levels[0.5]) < 0.2
+        levels[name] = float(err[ink].mean() - err[paper].mean())
+    assert levels["none"] < -2.5  # log(0.03 / 0.85) = -3.3: the print is in the shading
+    assert abs(levels["t_d"]) < 0.2
+    assert abs(levels["t_h"]) < 0.2

@@ -24,6 +24,8 @@ colours differ by less than about 0.8 degrees (``1 - cos < 1e-4``) and vanishes 
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -183,6 +185,7 @@ def edge_confidence(
     dark_eps: float = 1e-4,
     mask: torch.Tensor | None = None,
     t_d: float = 0.0,
+    t_h: float = 0.0,
 ) -> torch.Tensor:
     """How far each pixel is from a material edge, ``(B, 3, H, W) -> (B, 1, H, W)`` in [0, 1].
 
@@ -191,8 +194,10 @@ def edge_confidence(
     pixel beside a colour edge (``t_e`` 0.015: a 10 degree change gives 0.36, 5 degrees 0.94).
     With ``t_d > 0`` a step of log-intensity also counts: ``e_i`` is the larger of that and
     ``max_j |log p_i - log p_j| / t_d``, so pixels beside a sharp brightness step (black text
-    on white paper: ``t_d`` 0.5 marks steps of more than about 1.6x) are marked too.
-    ``t_e = 0`` or ``t_d = 0`` leaves that kind out.
+    on white paper: ``t_d`` 0.5 marks steps of more than about 1.6x) are marked too. With
+    ``t_h > 0`` so are thin strokes: ``e_i`` also takes the height of a dark or bright line at
+    most 4 px wide through the pixel (a top-hat of ``log p``, :data:`STROKE_SIZE`) over ``t_h``,
+    which marks printed lettering but not a shadow's or a crease's step. 0 leaves a kind out.
 
     Such a pixel often mixes the two materials, and a mixture of a bright and a dark colour
     has nearly the bright one's chromaticity at a fraction of its light: ``0.4 * cream +
@@ -203,11 +208,13 @@ def edge_confidence(
     shading than the green around it). :func:`retinex_term` with ``t_e > 0`` multiplies
     ``S_l``'s weights by ``min(e_i, e_j)``, so the shading's level across a colour edge is left
     to the other priors (``S_s``, ``S_m``, ``S_c``). A sharp brightness step of one colour is
-    print as often as it is a shadow's or a crease's edge; ``t_d`` takes it for print (the
-    ``print`` preset, for flat printed matter).
+    print as often as it is a shadow's or a crease's edge; ``t_d`` takes it for print. A thin
+    stroke is rarely shading; ``t_h`` takes it for print (the ``print`` preset).
     """
-    if t_e < 0 or t_d < 0 or not (t_e > 0 or t_d > 0):
-        raise ParameterError(f"t_e and t_d must be >= 0 and one > 0, got t_e={t_e}, t_d={t_d}")
+    if min(t_e, t_d, t_h) < 0 or not max(t_e, t_d, t_h) > 0:
+        raise ParameterError(
+            f"t_e, t_d and t_h must be >= 0 and one > 0, got t_e={t_e}, t_d={t_d}, t_h={t_h}"
+        )
     b, _, h, w = image.shape
     chrom = padded = logp = padded_log = inside = None
     if t_e > 0:
@@ -223,7 +230,7 @@ def edge_confidence(
     e = torch.zeros(b, 1, h, w, dtype=image.dtype, device=image.device)
     for dy in range(3):
         for dx in range(3):
-            if dy == dx == 1:
+            if dy == dx == 1 or (chrom is None and logp is None):
                 continue
             window = (slice(None), slice(None), slice(dy, dy + h), slice(dx, dx + w))
             if chrom is not None:
@@ -234,7 +241,43 @@ def edge_confidence(
             if inside is not None:
                 d = d * inside[window]
             e = torch.maximum(e, d)
+    if t_h > 0:
+        e = torch.maximum(e, _stroke_height(intensity(image, dark_eps).log(), mask) / t_h)
     return torch.exp(-(e**2))
+
+
+#: Side (px, at the working resolution) of the square that :func:`_stroke_height` closes and
+#: opens with: strokes up to 4 px wide count as print.
+STROKE_SIZE = 5
+
+
+def _stroke_height(logp: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """How far each pixel lies below (or above) its surroundings across a thin stroke.
+
+    The larger of the black top-hat ``closing(l) - l`` and the white top-hat ``l - opening(l)``
+    of the log-intensity ``l`` with a ``STROKE_SIZE`` square: a dark (bright) line narrower than
+    the square has the height of its step, a step edge or a smooth ramp has 0. Pixels outside
+    ``mask`` take no part (they are blacked out and would make every object's outline a stroke).
+    """
+    r = STROKE_SIZE // 2
+    inside = None if mask is None else mask.to(torch.bool)
+
+    def grow(x: torch.Tensor) -> torch.Tensor:  # dilation over the pixels inside
+        if inside is not None:
+            x = x.masked_fill(~inside, -math.inf)
+        return F.max_pool2d(F.pad(x, (r, r, r, r), mode="replicate"), STROKE_SIZE, 1)
+
+    def shrink(x: torch.Tensor) -> torch.Tensor:  # erosion over the pixels inside
+        return -grow(-x)
+
+    black = shrink(grow(logp)) - logp
+    white = logp - grow(shrink(logp))
+    height = torch.maximum(black, white)
+    if inside is not None:
+        height = height.masked_fill(~inside, 0.0)
+    # a stroke's anti-aliased rim stands less far from the paper than its core; it takes the
+    # core's height, so that no pair ties the stroke to the paper through it
+    return F.max_pool2d(F.pad(height, (1, 1, 1, 1), mode="replicate"), 3, 1)
 
 
 def _retinex_factors(
@@ -247,13 +290,15 @@ def _retinex_factors(
     t_e: float,
     mask: torch.Tensor | None,
     t_d: float = 0.0,
+    t_h: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``S_l``'s colour factor (chromaticity, intensity, edge) and dark factor per pair."""
     if t_c <= 0 or t_b <= 0:
         raise ParameterError(f"t_c and t_b must be > 0, got t_c={t_c}, t_b={t_b}")
-    if t_i < 0 or t_e < 0 or t_d < 0:
+    if min(t_i, t_e, t_d, t_h) < 0:
         raise ParameterError(
-            f"t_i, t_e and t_d must be >= 0 (0: off), got t_i={t_i}, t_e={t_e}, t_d={t_d}"
+            f"t_i, t_e, t_d and t_h must be >= 0 (0: off), got t_i={t_i}, t_e={t_e}, "
+            f"t_d={t_d}, t_h={t_h}"
         )
     chrom = image.clamp_min(dark_eps)
     chrom = chrom / chrom.norm(dim=1, keepdim=True)
@@ -265,8 +310,8 @@ def _retinex_factors(
     if t_i > 0:
         dlog = p.log() - pj.log()
         colour = colour * torch.exp(-(dlog**2) / t_i**2)
-    if t_e > 0 or t_d > 0:
-        marks = edge_confidence(image, t_e, dark_eps, mask, t_d)
+    if t_e > 0 or t_d > 0 or t_h > 0:
+        marks = edge_confidence(image, t_e, dark_eps, mask, t_d, t_h)
         colour = colour * pair_confidence(stencil, marks)
     return colour, dark
 
@@ -282,6 +327,7 @@ def retinex_weights(
     t_e: float = 0.0,
     mask: torch.Tensor | None = None,
     t_d: float = 0.0,
+    t_h: float = 0.0,
 ) -> torch.Tensor:
     """Pair weights ``w^l`` of ``S_l`` (Eq. 5), ``(B, 3, H, W) -> (B, K, H, W)``.
 
@@ -290,14 +336,14 @@ def retinex_weights(
     ``exp(-(log p_i - log p_j)^2 / t_i^2)``: two neighbours of the same chromaticity but very
     different brightness (dark print on a light ground of its hue) are no longer declared the
     same material; their shading is left to the other, non-local priors (``t_i = 0``: the
-    paper's weights). With ``t_e > 0`` or ``t_d > 0`` it is also multiplied by
+    paper's weights). With ``t_e``, ``t_d`` or ``t_h > 0`` it is also multiplied by
     ``min(e_i, e_j)`` (:func:`edge_confidence`, neighbours inside ``mask``): pixels beside a
-    colour edge (or a sharp brightness step) are not tied. With a pixel ``confidence``
-    (:func:`pixel_confidence`) and ``c_ij = min(c_i, c_j)``, the colour factor becomes
-    ``c_ij * factor + (1 - c_ij)``: a pair without trustworthy colours (dark or clipped) is not
-    cut apart by its noisy colour.
+    colour edge (or a sharp brightness step, or on a thin stroke) are not tied. With a pixel
+    ``confidence`` (:func:`pixel_confidence`) and ``c_ij = min(c_i, c_j)``, the colour factor
+    becomes ``c_ij * factor + (1 - c_ij)``: a pair without trustworthy colours (dark or
+    clipped) is not cut apart by its noisy colour.
     """
-    colour, dark = _retinex_factors(image, stencil, t_c, t_b, dark_eps, t_i, t_e, mask, t_d)
+    colour, dark = _retinex_factors(image, stencil, t_c, t_b, dark_eps, t_i, t_e, mask, t_d, t_h)
     if confidence is not None:
         c = pair_confidence(stencil, confidence)
         colour = c * colour + (1 - c)
@@ -322,6 +368,7 @@ def retinex_term(
     t_i: float = 0.0,
     t_e: float = 0.0,
     t_d: float = 0.0,
+    t_h: float = 0.0,
 ) -> StencilQuadratic:
     """The local Retinex prior ``S_l`` (Eq. 5) on the log-shading.
 
@@ -346,7 +393,8 @@ def retinex_term(
         t_i: intensity deviation (0: off, the paper's weights); see :func:`retinex_weights`.
         t_e: colour-edge deviation (0: off, the paper's weights): pairs touching a pixel
             beside a chromaticity edge are not tied (:func:`edge_confidence`).
-        t_d: brightness-step deviation of the same marks (0: off; the ``print`` preset).
+        t_d: brightness-step deviation of the same marks (0: off).
+        t_h: stroke-height deviation of the same marks (0: off; the ``print`` preset).
 
     Returns:
         ``StencilQuadratic`` with target differences of ``log p``.
@@ -357,7 +405,7 @@ def retinex_term(
             f"image is {tuple(image.shape[-2:])} but the stencil is "
             f"{(stencil.height, stencil.width)}"
         )
-    colour, dark = _retinex_factors(image, stencil, t_c, t_b, dark_eps, t_i, t_e, mask, t_d)
+    colour, dark = _retinex_factors(image, stencil, t_c, t_b, dark_eps, t_i, t_e, mask, t_d, t_h)
     logp = intensity(image, dark_eps).log()
     target = stencil.apply(logp)[:, 0]
     if confidence is not None:

@@ -133,6 +133,7 @@ class ShadingOptions:
             :func:`~torchiid.priors.shading_terms.edge_confidence`).
         t_d: brightness-step deviation of the same marks (0: off; see
             :func:`~torchiid.priors.shading_terms.edge_confidence`).
+        t_h: stroke-height deviation of the same marks (0: off; the same function).
         t_m: deviation of ``S_m`` (paper 0.05).
         matting_eps: Levin's ε of ``S_p`` (1e-5).
         dark_eps: floor of intensities before logs.
@@ -165,6 +166,7 @@ class ShadingOptions:
     t_i: float = 0.0
     t_e: float = 0.0
     t_d: float = 0.0
+    t_h: float = 0.0
     t_m: float = 0.05
     matting_eps: float = 1e-5
     dark_eps: float = 1e-4

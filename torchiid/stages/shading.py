@@ -451,6 +451,7 @@ def build_shading_system(
                 t_i=o.t_i,
                 t_e=o.t_e,
                 t_d=o.t_d,
+                t_h=o.t_h,
             ),
             input_key(
                 given,
@@ -459,6 +460,7 @@ def build_shading_system(
                 o.t_i,
                 o.t_e,
                 o.t_d,
+                o.t_h,
                 o.dark_eps,
                 o.dark_level,
                 o.clip_level,
