@@ -331,7 +331,7 @@ class Parameters:
                 )
             object.__setattr__(self, "luminance_weight", float(lw))
         for name in nonneg:
-            if getattr(self, name) < 0:
+            if not getattr(self, name) >= 0:  # NaN too
                 raise ParameterError(f"parameter {name} must be >= 0, got {getattr(self, name)}")
         for name in ("albedo_quantile", "view_quantile"):
             if not 0 < getattr(self, name) <= 1:

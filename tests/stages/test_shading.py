@@ -5,7 +5,7 @@ from torchiid.core.exceptions import ConvergenceWarning, ImageError, ParameterEr
 from torchiid.priors.lle import patch_rgb_features
 from torchiid.priors.shading_terms import shading_stencil
 from torchiid.stages.config import ShadingOptions, ShadingProblem, ShadingWeights
-from torchiid.stages.shading import build_shading_system, solve_shading
+from torchiid.stages.shading import ShadingSystemCache, build_shading_system, solve_shading
 from torchiid.synthetic import mondrian
 
 W = ShadingWeights()  # the paper's weights (lambda_g = lambda_m = 0.02 on S_c, S_p, S_m; 2 on S_l)
@@ -290,7 +290,7 @@ def test_smoothness_decides_the_shading_step_across_a_chromaticity_edge():
 
 def test_edge_confidence_keeps_a_mixed_pixel_from_moving_a_bright_print_into_the_shading():
     # dark green | one mixed pixel (0.4 cream + 0.6 green) | cream, under light that brightens
-    # smoothly. The mixed pixel has nearly cream's chromaticity but 2.5x less light, so S_l ties
+    # smoothly. The mixed pixel has nearly cream's chromaticity but 2.4x less light, so S_l ties
     # it to the cream and asks the shading to step by log 2.5 there; t_e cuts that pair
     h, w = 24, 48
     x = torch.linspace(0, 1, w, dtype=torch.float64).view(1, 1, 1, w).expand(1, 1, h, w)
@@ -337,3 +337,28 @@ def test_t_d_and_t_h_keep_black_print_out_of_the_shading():
     assert levels["none"] < -2.5  # log(0.03 / 0.85) = -3.3: the print is in the shading
     assert abs(levels["t_d"]) < 0.2
     assert abs(levels["t_h"]) < 0.2
+
+
+def test_the_cache_rebuilds_s_l_when_its_marks_change():
+    syn, problem = _inputs(24, 32, dtype=torch.float32)
+    cache = ShadingSystemCache()
+    first = build_shading_system(problem, W, ShadingOptions(t_e=0.015), cache)
+    again = build_shading_system(problem, W, ShadingOptions(t_e=0.015), cache)
+    assert again.terms["S_l"][1] is first.terms["S_l"][1]
+    for change in ({"t_e": 0.0}, {"t_e": 0.015, "t_d": 0.5}, {"t_e": 0.015, "t_h": 0.5}):
+        other = build_shading_system(problem, W, ShadingOptions(**change), cache)
+        assert other.terms["S_l"][1] is not first.terms["S_l"][1]
+    with pytest.raises(ParameterError, match="t_h"):
+        ShadingOptions(t_h=float("nan"))
+
+
+def test_edge_marks_take_a_mask_of_batch_one():
+    from torchiid.priors.shading_terms import edge_confidence
+
+    img = torch.rand(2, 3, 8, 9)
+    mask = torch.zeros(1, 1, 8, 9)
+    mask[..., 1:7, 2:8] = 0.5  # nonzero is inside, whatever the value
+    both = edge_confidence(img, 0.015, mask=mask, t_h=0.5)
+    for i in range(2):
+        one = edge_confidence(img[i : i + 1], 0.015, mask=mask > 0, t_h=0.5)
+        assert torch.equal(both[i : i + 1], one)

@@ -225,7 +225,10 @@ def edge_confidence(
         logp = intensity(image, dark_eps).log()
         padded_log = F.pad(logp, (1, 1, 1, 1), mode="replicate")
     if mask is not None:
-        check_shape(mask, (b, 1, h, w), "mask")
+        check_shape(mask, ("B", 1, h, w), "mask")
+        if mask.shape[0] not in (1, b):
+            raise ShapeError(f"mask has batch {mask.shape[0]}, the image {b}")
+        mask = mask.to(torch.bool).expand(b, 1, h, w)  # nonzero is inside
         inside = F.pad(mask.to(image.dtype), (1, 1, 1, 1))
     e = torch.zeros(b, 1, h, w, dtype=image.dtype, device=image.device)
     for dy in range(3):
@@ -337,8 +340,10 @@ def retinex_weights(
     different brightness (dark print on a light ground of its hue) are no longer declared the
     same material; their shading is left to the other, non-local priors (``t_i = 0``: the
     paper's weights). With ``t_e``, ``t_d`` or ``t_h > 0`` it is also multiplied by
-    ``min(e_i, e_j)`` (:func:`edge_confidence`, neighbours inside ``mask``): pixels beside a
-    colour edge (or a sharp brightness step, or on a thin stroke) are not tied. With a pixel
+    ``min(e_i, e_j)`` (:func:`edge_confidence`, neighbours inside ``mask``; ``mask`` is used for
+    these marks only, pairs leaving it keep their weight here and are dropped by
+    :func:`retinex_term`): pixels beside a colour edge (or a sharp brightness step, or on a thin
+    stroke) are not tied. With a pixel
     ``confidence`` (:func:`pixel_confidence`) and ``c_ij = min(c_i, c_j)``, the colour factor
     becomes ``c_ij * factor + (1 - c_ij)``: a pair without trustworthy colours (dark or
     clipped) is not cut apart by its noisy colour.
@@ -412,7 +417,7 @@ def retinex_term(
         # each pair mixes two asks: with weight c_ij the trusted one (its colour factor,
         # its target difference), with 1 - c_ij smooth shading (weight 1, target 0); the
         # target of the sum is the weighted mean, so a pair its colour cuts gets none
-        c = pair_confidence(stencil, confidence)
+        c = pair_confidence(stencil, confidence).clamp(0, 1)
         trusted = c * colour
         colour = trusted + (1 - c)
         target = target * trusted / colour.clamp_min(torch.finfo(colour.dtype).tiny)

@@ -186,6 +186,9 @@ class ShadingOptions:
     preconditioner: str = "jacobi"
 
     def __post_init__(self) -> None:
+        for name in ("t_i", "t_e", "t_d", "t_h"):
+            if not getattr(self, name) >= 0:
+                raise ParameterError(f"{name} must be >= 0 (0: off), got {getattr(self, name)}")
         for name in ("anchor", "tol"):
             if not getattr(self, name) > 0:
                 raise ParameterError(f"{name} must be > 0, got {getattr(self, name)}")
