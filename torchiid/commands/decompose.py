@@ -51,7 +51,7 @@ def add_parameter_options(p: argparse.ArgumentParser) -> None:
         "--preset",
         default="default",
         help=(
-            "parameter preset: default, print (photos of flat printed matter: documents, "
+            "parameter preset: default, print (photos of printed matter: documents, "
             "labels), paper or converged (every solve to tolerance)"
         ),
     )
