@@ -216,36 +216,38 @@ def edge_confidence(
             f"t_e, t_d and t_h must be >= 0 and one > 0, got t_e={t_e}, t_d={t_d}, t_h={t_h}"
         )
     b, _, h, w = image.shape
-    chrom = padded = logp = padded_log = inside = None
-    if t_e > 0:
-        chrom = image.clamp_min(dark_eps)
-        chrom = chrom / chrom.norm(dim=1, keepdim=True)
-        padded = F.pad(chrom, (1, 1, 1, 1), mode="replicate")
-    if t_d > 0:
-        logp = intensity(image, dark_eps).log()
-        padded_log = F.pad(logp, (1, 1, 1, 1), mode="replicate")
     if mask is not None:
         check_shape(mask, ("B", 1, h, w), "mask")
         if mask.shape[0] not in (1, b):
-            raise ShapeError(f"mask has batch {mask.shape[0]}, the image {b}")
+            raise ShapeError(f"mask has batch {mask.shape[0]}; expected 1 or the image's batch {b}")
         mask = mask.to(torch.bool).expand(b, 1, h, w)  # nonzero is inside
-        inside = F.pad(mask.to(image.dtype), (1, 1, 1, 1))
+    logp = intensity(image, dark_eps).log() if t_d > 0 or t_h > 0 else None
     e = torch.zeros(b, 1, h, w, dtype=image.dtype, device=image.device)
-    for dy in range(3):
-        for dx in range(3):
-            if dy == dx == 1 or (chrom is None and logp is None):
-                continue
-            window = (slice(None), slice(None), slice(dy, dy + h), slice(dx, dx + w))
-            if chrom is not None:
-                d = (1 - (chrom * padded[window]).sum(1, keepdim=True)) / t_e
-            if logp is not None:
-                step = (logp - padded_log[window]).abs() / t_d
-                d = step if chrom is None else torch.maximum(d, step)
-            if inside is not None:
-                d = d * inside[window]
-            e = torch.maximum(e, d)
+    if t_e > 0 or t_d > 0:
+        # each pixel against its 8 neighbours (shifted copies, replicate-padded borders)
+        chrom = None
+        if t_e > 0:
+            chrom = image.clamp_min(dark_eps)
+            chrom = chrom / chrom.norm(dim=1, keepdim=True)
+            chrom_pad = F.pad(chrom, (1, 1, 1, 1), mode="replicate")
+        if t_d > 0:
+            logp_pad = F.pad(logp, (1, 1, 1, 1), mode="replicate")
+        inside = None if mask is None else F.pad(mask.to(image.dtype), (1, 1, 1, 1))
+        for dy in range(3):
+            for dx in range(3):
+                if dy == dx == 1:
+                    continue
+                win = (slice(None), slice(None), slice(dy, dy + h), slice(dx, dx + w))
+                d = torch.zeros_like(e)
+                if chrom is not None:
+                    d = (1 - (chrom * chrom_pad[win]).sum(1, keepdim=True)) / t_e
+                if t_d > 0:
+                    d = torch.maximum(d, (logp - logp_pad[win]).abs() / t_d)
+                if inside is not None:
+                    d = d * inside[win]
+                e = torch.maximum(e, d)
     if t_h > 0:
-        e = torch.maximum(e, _stroke_height(intensity(image, dark_eps).log(), mask) / t_h)
+        e = torch.maximum(e, _stroke_height(logp, mask) / t_h)
     return torch.exp(-(e**2))
 
 
@@ -319,6 +321,23 @@ def _retinex_factors(
     return colour, dark
 
 
+def _with_confidence(
+    colour: torch.Tensor, stencil: Stencil, confidence: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``S_l``'s colour factor under a pixel confidence, and the share of it that is trusted.
+
+    Each pair mixes two asks: with ``c_ij = min(c_i, c_j)`` its own (factor ``f``, its target
+    difference) and with ``1 - c_ij`` smooth shading (factor 1, target 0). Returns the summed
+    factor ``c_ij f + 1 - c_ij`` and ``c_ij f``; the pair's target is its difference times
+    their ratio (the weighted mean of the two targets).
+    """
+    if confidence is None:
+        return colour, colour
+    c = pair_confidence(stencil, confidence).clamp(0, 1)
+    trusted = c * colour
+    return trusted + (1 - c), trusted
+
+
 def retinex_weights(
     image: torch.Tensor,
     stencil: Stencil,
@@ -349,9 +368,7 @@ def retinex_weights(
     clipped) is not cut apart by its noisy colour.
     """
     colour, dark = _retinex_factors(image, stencil, t_c, t_b, dark_eps, t_i, t_e, mask, t_d, t_h)
-    if confidence is not None:
-        c = pair_confidence(stencil, confidence)
-        colour = c * colour + (1 - c)
+    colour, _ = _with_confidence(colour, stencil, confidence)
     w = colour * dark
     return w * stencil.valid.to(w.device, w.dtype)
 
@@ -414,12 +431,9 @@ def retinex_term(
     logp = intensity(image, dark_eps).log()
     target = stencil.apply(logp)[:, 0]
     if confidence is not None:
-        # each pair mixes two asks: with weight c_ij the trusted one (its colour factor,
-        # its target difference), with 1 - c_ij smooth shading (weight 1, target 0); the
-        # target of the sum is the weighted mean, so a pair its colour cuts gets none
-        c = pair_confidence(stencil, confidence).clamp(0, 1)
-        trusted = c * colour
-        colour = trusted + (1 - c)
+        # the weighted mean of the pair's own target and smooth shading's 0: a pair its colour
+        # cuts (f = 0) asks for no share of the intensity step
+        colour, trusted = _with_confidence(colour, stencil, confidence)
         target = target * trusted / colour.clamp_min(torch.finfo(colour.dtype).tiny)
     w = colour * dark * stencil.valid.to(colour.device, colour.dtype)
     pm = pair_mask(stencil, mask, w.dtype)
