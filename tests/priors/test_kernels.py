@@ -7,7 +7,8 @@ import torch
 
 from torchiid.core.exceptions import ShapeError
 from torchiid.priors import kernels
-from torchiid.priors.matting import MattingQuadratic
+from torchiid.core.exceptions import ImageError
+from torchiid.priors.matting import MattingQuadratic, matting_stencil
 from torchiid.priors.quadratic import StencilQuadratic
 from torchiid.priors.reflectance_terms import StencilL1Term
 from torchiid.priors.stencil import Stencil, half_offsets
@@ -86,6 +87,33 @@ def test_matting_stencil_matches_torch_with_mask(torch_ops):
     torch.testing.assert_close(
         fast.matvec(x), MattingQuadratic(base, mask=mask).matvec(x), rtol=1e-4, atol=1e-4
     )
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_matting_stencil_window_kernel_matches_torch(torch_ops, dtype):
+    """The fused path (window statistics and weights in numba) against the torch ops'
+    ``MattingQuadratic.as_stencil``, with a mask, a flat patch (only ``eps`` keeps its windows
+    invertible) and one outlier pixel (a window of condition number ~1e7)."""
+    g = torch.Generator().manual_seed(5)
+    base = torch.rand(2, 3, 17, 23, generator=g, dtype=torch.float64)
+    base[0, :, 2:9, 3:12] = 0.4  # flat
+    base[1, :, 10, 7] = 220.0  # outlier among values near 1
+    base = base.to(dtype)
+    mask = torch.rand(2, 1, 17, 23, generator=g) > 0.1
+    for m in (None, mask):
+        fast = matting_stencil(base, 1e-5, m)
+        ref = torch_ops(lambda m=m: MattingQuadratic(base, mask=m).as_stencil())
+        assert fast.weights.dtype == dtype
+        tol = 1e-5 if dtype == torch.float32 else 1e-10
+        scale = ref.weights.abs().max()
+        torch.testing.assert_close(fast.weights / scale, ref.weights / scale, rtol=0, atol=tol)
+
+
+def test_matting_stencil_rejects_bad_input():
+    with pytest.raises(ImageError, match="3x3"):
+        matting_stencil(torch.rand(1, 3, 2, 8))
+    with pytest.raises(ShapeError, match="mask"):
+        matting_stencil(torch.rand(1, 3, 8, 8), mask=torch.ones(1, 1, 8, 9, dtype=torch.bool))
 
 
 @pytest.mark.skipif(

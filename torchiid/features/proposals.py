@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -280,11 +281,20 @@ def _search_one(
     h, w, _ = srgb.shape
     converted = {cs: to_colour_space(srgb, cs) for cs in colour_spaces}
     seg_keys = [(cs, float(k)) for cs in colour_spaces for k in scales]
-    segs = []
-    for cs, k in seg_keys:
+
+    def segment(key: tuple[str, float]) -> np.ndarray:
+        cs, k = key
         ms = int(k) if min_size is None else int(min_size)
         seg = graph_segmentation(converted[cs], scale=k, sigma=sigma, min_size=max(ms, 1))
-        segs.append(compact_labels(seg.reshape(-1), int(seg.max()) + 1).reshape(h, w))
+        return compact_labels(seg.reshape(-1), int(seg.max()) + 1).reshape(h, w)
+
+    workers = min(len(seg_keys), torch.get_num_threads())
+    if workers > 1:
+        # OpenCV's segmentation releases the GIL: the strategies' segmentations run at once
+        with ThreadPoolExecutor(workers) as pool:
+            segs = list(pool.map(segment, seg_keys))
+    else:
+        segs = [segment(key) for key in seg_keys]
     atom_flat, rep = intersect_segmentations(segs)
     n_atoms = len(rep)
     atom_hist = {}

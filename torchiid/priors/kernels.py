@@ -47,6 +47,7 @@ __all__ = [
     "stencil_product",
     "stencil_degree",
     "stencil_affinity",
+    "matting_window_terms",
     "matting_weights",
 ]
 
@@ -183,6 +184,31 @@ def _run(kernel, args: tuple, rows: int, work: int) -> None:
     kernel(*args, cuts[0], cuts[1])
     for f in futures:
         f.result()
+
+
+def matting_window_terms(
+    image: torch.Tensor, eps: float, mask: torch.Tensor | None = None
+) -> torch.Tensor:
+    """The matting Laplacian's per-window summands in one pass, for :func:`matting_weights`.
+
+    Args:
+        image: ``(B, 3, H, W)`` float64 centred base image, ``H, W >= 3``.
+        eps: Levin's regulariser.
+        mask: optional ``(B, 1, H, W)`` bool; windows with a pixel outside it get 0.
+
+    Returns:
+        ``(B, 11, H + 2, W + 2)`` float64: window ``(wy, wx)`` at ``(wy + 2, wx + 2)``, 0
+        around (the layout of ``MattingQuadratic.as_stencil``'s torch ops).
+    """
+    _, kernel = _numba()
+    b, _, h, w = image.shape
+    qp = torch.zeros(b, 11, h + 2, w + 2, dtype=torch.float64)
+    m = torch.empty(0, 0, 0, 0, dtype=torch.bool)
+    if mask is not None:
+        m = mask.to(torch.bool).contiguous()
+    args = (image.contiguous().numpy(), m.numpy(), float(eps), qp.numpy())
+    _run(kernel.matting_windows, args, b * (h - 2), b * h * w * 120)
+    return qp
 
 
 def matting_weights(

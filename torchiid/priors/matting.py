@@ -32,7 +32,7 @@ from torchiid.priors import kernels
 from torchiid.priors.quadratic import QuadraticTerm, StencilQuadratic
 from torchiid.priors.stencil import Stencil, half_offsets
 
-__all__ = ["MattingQuadratic", "matting_laplacian", "smooth_base"]
+__all__ = ["MattingQuadratic", "matting_laplacian", "matting_stencil", "smooth_base"]
 
 
 def _box_valid(x: torch.Tensor) -> torch.Tensor:
@@ -287,3 +287,39 @@ def matting_laplacian(
             f"the matting Laplacian needs at least 3x3 pixels, got {tuple(base.shape)}"
         )
     return MattingQuadratic(base, eps=eps, mask=mask)
+
+
+def matting_stencil(
+    base: torch.Tensor, eps: float = 1e-5, mask: torch.Tensor | None = None
+) -> StencilQuadratic:
+    """``S_p`` of Eq. 3 as its signed 5×5 pair stencil: ``matting_laplacian(...).as_stencil()``.
+
+    What the shading stage uses. Where the compiled kernels apply
+    (:func:`~torchiid.priors.kernels.usable`) the window statistics and the pair weights are
+    computed in two passes over the image, without the float64 torch temporaries of
+    :class:`MattingQuadratic` (measured at 512×384, 2 threads: about 8 ms against 55–65 ms);
+    otherwise it is exactly ``matting_laplacian(base, eps, mask).as_stencil()``.
+
+    Args:
+        base: ``(B, 3, H, W)`` linear RGB base image (see :func:`matting_laplacian`).
+        eps: regulariser, paper value 1e-5.
+        mask: optional ``(B, 1, H, W)`` bool region; windows leaving it are dropped.
+
+    Returns:
+        :class:`~torchiid.priors.quadratic.StencilQuadratic` in ``base``'s dtype.
+    """
+    if not kernels.usable(base):
+        return matting_laplacian(base, eps=eps, mask=mask).as_stencil()
+    if base.dim() == 4 and min(base.shape[-2:]) < 3:
+        raise ImageError(
+            f"the matting Laplacian needs at least 3x3 pixels, got {tuple(base.shape)}"
+        )
+    check_image(base, "base image", channels=3, min_side=3, nonnegative=False)
+    b, _, h, w = base.shape
+    if mask is not None and mask.shape != (b, 1, h, w):
+        raise ShapeError(f"expected mask of shape {(b, 1, h, w)}, got {tuple(mask.shape)}")
+    i64 = base.to(torch.float64)
+    i64 = i64 - i64.mean(dim=(2, 3), keepdim=True)  # L is invariant to a colour shift
+    qp = kernels.matting_window_terms(i64, eps, mask)
+    stencil = Stencil(h, w, half_offsets(5), device=base.device)
+    return StencilQuadratic(stencil, kernels.matting_weights(qp, i64, stencil.offsets, base.dtype))

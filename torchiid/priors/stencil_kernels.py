@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["gather", "gather_parallel", "matting_weights", "affinity"]
+__all__ = ["gather", "gather_parallel", "matting_windows", "matting_weights", "affinity"]
 
 
 def _gather(z, w, dys, dxs, out, square, degree, r0, r1):  # pragma: no cover - compiled
@@ -134,6 +134,90 @@ def _matting_weights(qp, img, dys, dxs, out, r0, r1):  # pragma: no cover - comp
     return out
 
 
+def _matting_windows(img, mask, eps, qp, r0, r1):  # pragma: no cover - compiled
+    """The per-window summands of :func:`_matting_weights`, for window rows ``r0 .. r1 - 1``.
+
+    ``img`` ``(B, 3, H, W)`` float64, the centred base image; ``mask`` ``(B, 1, H, W)`` bool
+    (or ``(0, 0, 0, 0)``: none; a window with a pixel outside it is dropped); ``eps``: Levin's
+    regulariser. Writes ``qp[b, :, wy + 2, wx + 2] = v·(D [6 symmetric entries], D μ,
+    μᵀ D μ, 1)`` for the ``(B·(H − 2))`` window rows, where ``μ`` and ``Σ`` are the window's
+    mean and covariance, ``D = (Σ + ε/9 U)⁻¹`` by the ``L D Lᵀ`` closed form of
+    ``matting._inv_sym3`` and ``v`` 1 for a kept window, 0 for a dropped one. The border of
+    ``qp`` is left to the caller (zeros).
+    """
+    nb, _, h, wd = img.shape
+    hw = h - 2
+    use_mask = mask.shape[0] > 0
+    for r in range(r0, r1):
+        b = r // hw
+        wy = r - b * hw
+        for wx in range(wd - 2):
+            s0 = s1 = s2 = 0.0
+            s00 = s11 = s22 = s01 = s02 = s12 = 0.0
+            inside = True
+            for yy in range(wy, wy + 3):
+                for xx in range(wx, wx + 3):
+                    a0 = img[b, 0, yy, xx]
+                    a1 = img[b, 1, yy, xx]
+                    a2 = img[b, 2, yy, xx]
+                    s0 += a0
+                    s1 += a1
+                    s2 += a2
+                    s00 += a0 * a0
+                    s11 += a1 * a1
+                    s22 += a2 * a2
+                    s01 += a0 * a1
+                    s02 += a0 * a2
+                    s12 += a1 * a2
+                    if use_mask and not mask[b, 0, yy, xx]:
+                        inside = False
+            py = wy + 2
+            px = wx + 2
+            if not inside:
+                for c in range(11):
+                    qp[b, c, py, px] = 0.0
+                continue
+            m0 = s0 / 9.0
+            m1 = s1 / 9.0
+            m2 = s2 / 9.0
+            ca = s00 / 9.0 - m0 * m0 + eps / 9.0
+            cb = s01 / 9.0 - m0 * m1
+            cc = s02 / 9.0 - m0 * m2
+            cd = s11 / 9.0 - m1 * m1 + eps / 9.0
+            ce = s12 / 9.0 - m1 * m2
+            cf = s22 / 9.0 - m2 * m2 + eps / 9.0
+            l21 = cb / ca
+            l31 = cc / ca
+            d2 = cd - l21 * cb
+            l32 = (ce - l31 * cb) / d2
+            d3 = cf - l31 * cc - l32 * l32 * d2
+            mm = l21 * l32 - l31
+            q1 = 1.0 / ca
+            q2 = 1.0 / d2
+            q3 = 1.0 / d3
+            i00 = q1 + l21 * l21 * q2 + mm * mm * q3
+            i01 = -l21 * q2 - mm * l32 * q3
+            i02 = mm * q3
+            i11 = q2 + l32 * l32 * q3
+            i12 = -l32 * q3
+            i22 = q3
+            dm0 = i00 * m0 + i01 * m1 + i02 * m2
+            dm1 = i01 * m0 + i11 * m1 + i12 * m2
+            dm2 = i02 * m0 + i12 * m1 + i22 * m2
+            qp[b, 0, py, px] = i00
+            qp[b, 1, py, px] = i11
+            qp[b, 2, py, px] = i22
+            qp[b, 3, py, px] = i01
+            qp[b, 4, py, px] = i02
+            qp[b, 5, py, px] = i12
+            qp[b, 6, py, px] = dm0
+            qp[b, 7, py, px] = dm1
+            qp[b, 8, py, px] = dm2
+            qp[b, 9, py, px] = m0 * dm0 + m1 * dm1 + m2 * dm2
+            qp[b, 10, py, px] = 1.0
+    return qp
+
+
 def _affinity(
     feat, sem, mask, dys, dxs, scale, a_l, a_m, out, r0, r1
 ):  # pragma: no cover - compiled
@@ -204,4 +288,6 @@ _jit = njit(nogil=True, cache=True, fastmath=True, boundscheck=False)
 gather = njit(nogil=True, cache=True, boundscheck=False)(_gather)
 gather_parallel = njit(parallel=True, nogil=True, cache=True, boundscheck=False)(_gather_all)
 matting_weights = _jit(_matting_weights)
+# the window statistics keep IEEE semantics, as the torch ops that they replace
+matting_windows = njit(nogil=True, cache=True, boundscheck=False)(_matting_windows)
 affinity = _jit(_affinity)

@@ -48,7 +48,7 @@ from torchiid.core.cache import InputKey, input_key
 from torchiid.core.check import check_finite, check_image, check_shape
 from torchiid.core.exceptions import ConvergenceWarning, ParameterError, ShapeError
 from torchiid.priors.lle import lle_term
-from torchiid.priors.matting import matting_laplacian, smooth_base
+from torchiid.priors.matting import matting_stencil, smooth_base
 from torchiid.priors.quadratic import QuadraticTerm, SumQuadratic
 from torchiid.priors.shading_terms import (
     intensity,
@@ -417,13 +417,13 @@ def build_shading_system(
         timed(
             "S_p",
             weights.lambda_p,
-            lambda: matting_laplacian(
+            lambda: matting_stencil(
                 _default_base(image, mask, o.base_sigma)
                 if base_image is None
                 else base_image.to(dt),
                 eps=o.matting_eps,
                 mask=mask,
-            ).as_stencil(),
+            ),
         )
     if problem.similarity is not None and weights.lambda_m > 0:
         sim = problem.similarity
