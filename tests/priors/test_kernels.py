@@ -5,9 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchiid.core.exceptions import ShapeError
+from torchiid.core.exceptions import ImageError, ShapeError
 from torchiid.priors import kernels
-from torchiid.core.exceptions import ImageError
 from torchiid.priors.matting import MattingQuadratic, matting_stencil
 from torchiid.priors.quadratic import StencilQuadratic
 from torchiid.priors.reflectance_terms import StencilL1Term
