@@ -239,3 +239,19 @@ def test_inputs_the_kernels_do_not_handle_keep_the_torch_results(torch_ops):
     torch.testing.assert_close(out, merged_stencil_affinity(colour, sem, st, 0.05, 2.0, 20.0))
     with pytest.raises(ShapeError, match=r"out must be a torch.float32 tensor of shape"):
         merged_stencil_affinity(colour, sem, st, 0.05, 2.0, 20.0, out=torch.empty(1, 3, 16, 16))
+
+
+@pytest.mark.parametrize("history", [0, 1, 2])
+def test_replayed_bregman_update_matches_the_stored_state_update(history):
+    """The kernel's right-hand side equals the torch path's update from the stored state
+    after the same earlier updates (batch of 2, a height that splits into uneven bands)."""
+    g = torch.Generator().manual_seed(history)
+    st = Stencil.square(27, 21, 11)
+    w = torch.rand(2, st.num_offsets, 27, 21, generator=g) * st.valid
+    zs = [torch.rand(2, 3, 27, 21, generator=g) for _ in range(history + 1)]
+    term = StencilL1Term(st, w, zero_invalid=False)
+    b = None
+    for z in zs:
+        b, rhs, _ = term.bregman_step(z, b, 0.05, with_l1=False)
+    fast = kernels.bregman_replay(zs[:-1], zs[-1], w, st.offsets, 0.05)
+    torch.testing.assert_close(fast, rhs, rtol=1e-5, atol=1e-5)

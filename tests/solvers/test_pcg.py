@@ -150,3 +150,33 @@ def test_channels_last_input_gives_the_same_answer():
     torch.testing.assert_close(res.x, ref.x)
     assert res.x.is_contiguous()
     torch.testing.assert_close(w * ref.x + 0.1 * ref.x.roll(1, -1) + 0.1 * ref.x.roll(-1, -1), b)
+
+
+def test_known_start_residual_saves_a_product_and_gives_the_same_iterates():
+    """``r0`` (the residual at ``x0``) replaces the first product; a second solve started
+    from the first one's ``PCGResult.r`` corrected by the change of the right-hand side
+    matches a solve that computes its residual."""
+    mats = [_spd(20, s) for s in range(2)]
+    g = torch.Generator().manual_seed(7)
+    b1 = torch.randn(2, 20, generator=g, dtype=torch.float64)
+    b2 = b1 + 0.1 * torch.randn(2, 20, generator=g, dtype=torch.float64)
+    calls = []
+
+    def counted(x):
+        calls.append(1)
+        return _batch_matvec(mats)(x)
+
+    first = pcg(counted, b1, max_iter=3, warn=False, true_residual=False)
+    torch.testing.assert_close(first.r, b1 - _batch_matvec(mats)(first.x))
+    calls.clear()
+    fresh = pcg(counted, b2, x0=first.x, max_iter=4, warn=False, true_residual=False)
+    n_fresh = len(calls)
+    calls.clear()
+    reused = pcg(
+        counted, b2, x0=first.x, max_iter=4, warn=False, true_residual=False,
+        r0=first.r + (b2 - b1),
+    )  # fmt: skip
+    assert len(calls) == n_fresh - 1
+    torch.testing.assert_close(reused.x, fresh.x, rtol=1e-10, atol=1e-12)
+    with pytest.raises(ShapeError, match="r0"):
+        pcg(counted, b2, r0=torch.zeros(2, 19, dtype=torch.float64))

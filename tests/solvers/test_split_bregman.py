@@ -161,3 +161,32 @@ def test_errors():
         split_bregman(bad, [term], [1.0])
     with pytest.raises(ShapeError, match=r"expected rho of shape \(B, C, H, W\)"):
         split_bregman(rho[0], [term], [1.0])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("max_outer", [1, 2, 3, 6])
+def test_unstored_and_replayed_states_give_the_stored_state_iterates(dtype, max_outer):
+    """``keep_state=False`` (the pipeline's setting without a warm start): the last update's
+    state is not written, and on CPU the state is replayed from the past ``z`` instead of
+    stored (up to ``REPLAY_STEPS`` updates, then stored). The iterates are the stored-state
+    solver's, to round-off; each ``z`` step after the first starts from the carried
+    residual in both runs."""
+    from torchiid.priors import kernels
+    from torchiid.priors import reflectance_terms as rt
+
+    rho, term = _problem(b=2, h=23, w=19, dtype=dtype)
+    kw = dict(gamma_a=1.0, theta=2.0, max_outer=max_outer, tol=0, cg_max_iter=4)
+    stored = split_bregman(rho, [term], [0.05], track_objective=False, **kw)
+    assert term.state_written
+    lean = StencilL1Term(term.stencil, term.weights, keep_state=False)
+    calls = []
+    real = kernels.bregman_replay
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(kernels, "bregman_replay", lambda h, *a: calls.append(len(h)) or real(h, *a))
+        res = split_bregman(rho, [lean], [0.05], track_objective=False, **kw)
+    tol = 2e-5 if dtype == torch.float32 else 1e-11
+    torch.testing.assert_close(res.z, stored.z, rtol=tol, atol=tol)
+    if kernels._numba() is not None:
+        # updates at z_0 .. z_{max_outer - 1}: replayed while their history is short enough
+        assert calls == [m for m in range(max_outer) if m <= rt.REPLAY_STEPS]
+    assert not lean.state_written  # the last update is never stored

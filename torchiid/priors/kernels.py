@@ -48,6 +48,7 @@ __all__ = [
     "stencil_degree",
     "stencil_affinity",
     "matting_window_terms",
+    "bregman_replay",
     "matting_weights",
 ]
 
@@ -186,6 +187,60 @@ def _run(kernel, args: tuple, rows: int, work: int) -> None:
         f.result()
 
 
+def bregman_replay(
+    history: list[torch.Tensor],
+    z: torch.Tensor,
+    weights: torch.Tensor,
+    offsets: list[tuple[int, int]],
+    lam: float,
+) -> torch.Tensor:
+    """The right-hand side of a ``StencilL1Term`` Bregman update, its state replayed.
+
+    ``Σ_k (W M)ᵀ (d_k − b_k)`` at ``z`` for a solve that started from the zero state and made
+    its earlier updates at the ``z`` in ``history`` (oldest first): each pair's Bregman
+    variable is recomputed from them instead of read from a stored ``(B, C, K, H, W)``
+    state (see ``stencil_kernels._bregman_replay``). Rows run in bands on torch's thread
+    count; each band's contributions below its last row are added after all bands end.
+
+    Shape:
+        history items and z ``(B, C, H, W)``, weights ``(B, K, H, W)`` -> ``(B, C, H, W)``.
+    """
+    import numpy as np
+
+    _, kernel = _numba()
+    dys, dxs = _offsets(tuple(offsets))
+    b, c, h, w = z.shape
+    zs = torch.stack([*history, z]).contiguous()
+    rhs = torch.empty(b, c, h, w, dtype=z.dtype)
+    depth = max(1, int(dys.max()))
+    rows = b * h
+    n = min(torch.get_num_threads(), rows)
+    work = rows * w * len(offsets) * c * (4 + 3 * len(history))
+    if n <= 1 or work < PARALLEL_WORK:
+        n = 1
+    cuts = [rows * i // n for i in range(n + 1)]
+    halos = [np.empty((depth, c, w), dtype=rhs.numpy().dtype) for _ in range(n)]
+    lam_t = rhs.numpy().dtype.type(lam)
+    args = (zs.numpy(), weights.contiguous().numpy(), dys, dxs, lam_t, rhs.numpy())
+    if n == 1:
+        kernel.bregman_replay(*args, halos[0], 0, rows)
+    else:
+        pool = _executor(n - 1)
+        futures = [
+            pool.submit(kernel.bregman_replay, *args, halos[i], cuts[i], cuts[i + 1])
+            for i in range(1, n)
+        ]
+        kernel.bregman_replay(*args, halos[0], cuts[0], cuts[1])
+        for f in futures:
+            f.result()
+    for i in range(n - 1):  # the last band's halo lies past the image: all zero
+        for t in range(depth):
+            r = cuts[i + 1] + t
+            if r < rows:
+                rhs[r // h, :, r % h] += torch.from_numpy(halos[i][t])
+    return rhs
+
+
 def matting_window_terms(
     image: torch.Tensor, eps: float, mask: torch.Tensor | None = None
 ) -> torch.Tensor:
@@ -202,7 +257,9 @@ def matting_window_terms(
     """
     _, kernel = _numba()
     b, _, h, w = image.shape
-    qp = torch.zeros(b, 11, h + 2, w + 2, dtype=torch.float64)
+    qp = torch.empty(b, 11, h + 2, w + 2, dtype=torch.float64)
+    qp[:, :, :2].zero_()  # the kernel writes every other entry (the window rows' borders too)
+    qp[:, :, h:].zero_()
     m = torch.empty(0, 0, 0, 0, dtype=torch.bool)
     if mask is not None:
         m = mask.to(torch.bool).contiguous()

@@ -206,7 +206,7 @@ class MattingQuadratic(QuadraticTerm):
         stencil = Stencil(h, w, half_offsets(5), device=self.device)
         if kernels.usable(qp, img):
             weights = kernels.matting_weights(qp, img, stencil.offsets, self.dtype)
-            return StencilQuadratic(stencil, weights)
+            return StencilQuadratic(stencil, weights, zero_invalid=False)  # 0 there already
         ip = F.pad(img, (2, 2, 0, 2))
         weights = torch.zeros(b, stencil.num_offsets, h, w, dtype=self.dtype, device=self.device)
         for y0 in range(0, h, band_rows):  # row bands keep the float64 temporaries in cache
@@ -322,4 +322,5 @@ def matting_stencil(
     i64 = i64 - i64.mean(dim=(2, 3), keepdim=True)  # L is invariant to a colour shift
     qp = kernels.matting_window_terms(i64, eps, mask)
     stencil = Stencil(h, w, half_offsets(5), device=base.device)
-    return StencilQuadratic(stencil, kernels.matting_weights(qp, i64, stencil.offsets, base.dtype))
+    weights = kernels.matting_weights(qp, i64, stencil.offsets, base.dtype)
+    return StencilQuadratic(stencil, weights, zero_invalid=False)  # 0 there already

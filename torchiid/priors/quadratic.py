@@ -88,10 +88,16 @@ class StencilQuadratic(QuadraticTerm):
             Laplacian's stencil form), ``to_sparse`` handles both.
         target: optional ``(B, K, H, W)`` target differences ``c`` (e.g. ``log p_i - log p_j``
             of the Retinex term, Eq. 5); ``None`` means 0.
+        zero_invalid: set the weights of pairs leaving the image to 0 (a copy); ``False``
+            when they already are (the compiled builders write 0 there), saving a pass.
     """
 
     def __init__(
-        self, stencil: Stencil, weights: torch.Tensor, target: torch.Tensor | None = None
+        self,
+        stencil: Stencil,
+        weights: torch.Tensor,
+        target: torch.Tensor | None = None,
+        zero_invalid: bool = True,
     ) -> None:
         b, k, h, w = weights.shape
         if (k, h, w) != (stencil.num_offsets, stencil.height, stencil.width):
@@ -104,7 +110,9 @@ class StencilQuadratic(QuadraticTerm):
                 f"target {tuple(target.shape)} must match weights {tuple(weights.shape)}"
             )
         self.stencil = stencil
-        self.weights = weights * stencil.valid.to(device=weights.device, dtype=weights.dtype)
+        if zero_invalid:
+            weights = weights * stencil.valid.to(device=weights.device, dtype=weights.dtype)
+        self.weights = weights
         self.weighted_target = None if target is None else self.weights * target
         self.shape = (b, 1, h, w)
         self.dtype = weights.dtype
@@ -153,13 +161,16 @@ class StencilQuadratic(QuadraticTerm):
 
     def diagonal(self) -> torch.Tensor:
         """``diag(A)``: each pixel's summed pair weights."""
-        return self.stencil.laplacian_diagonal(self.weights)
+        # the weights of pairs leaving the image are 0 (the constructor's invariant)
+        if kernels.usable(self.weights, offsets=self.stencil.offsets):
+            return kernels.stencil_degree(self.weights, self.stencil.offsets, square=False)
+        return self.stencil.laplacian_diagonal(self.weights, zero_invalid=False)
 
     def rhs(self) -> torch.Tensor:
         """``M^T W c``."""
         if self.weighted_target is None:
             return super().rhs()
-        return self.stencil.adjoint(self.weighted_target.unsqueeze(1))
+        return self.stencil.adjoint(self.weighted_target.unsqueeze(1), zero_invalid=False)
 
     def to_sparse(self) -> torch.Tensor:
         """``M^T W M`` assembled from :meth:`Stencil.pair_index` (weights may be signed)."""
@@ -383,24 +394,34 @@ class SumQuadratic(QuadraticTerm):
         stencils = [t.stencil for _, t in active if isinstance(t, StencilQuadratic)]
         widest = max(stencils, key=lambda s: s.num_offsets) if stencils else None
         for lam, t in active:
-            if isinstance(t, StencilQuadratic):
-                s = t.scaled(lam)
-                if widest is not None and set(t.stencil.offsets) <= set(widest.offsets):
-                    s = s if t.stencil is widest else s.embedded(widest)
-                key = id(s.stencil)
-                if key in merged:
-                    m = merged[key]
-                    m.weights = m.weights + s.weights
-                    if s.weighted_target is not None:
-                        m.weighted_target = (
-                            s.weighted_target
-                            if m.weighted_target is None
-                            else m.weighted_target + s.weighted_target
-                        )
-                else:
-                    merged[key] = s
-            else:
+            if not isinstance(t, StencilQuadratic):
                 others.append((lam, t))
+                continue
+            # accumulate lam * t, offset by offset, into one term on the widest stencil
+            # (or on t's own when it does not fit): one buffer per stencil, no per-term copies
+            fits = widest is not None and set(t.stencil.offsets) <= set(widest.offsets)
+            st = widest if fits else t.stencil
+            m = merged.get(id(st))
+            if m is None:
+                m = StencilQuadratic.__new__(StencilQuadratic)
+                m.stencil, m.shape, m.dtype, m.device = st, t.shape, t.dtype, t.device
+                m.weights = t.weights.new_zeros(t.shape[0], st.num_offsets, *t.shape[2:])
+                m.weighted_target = None
+                merged[id(st)] = m
+            if st is t.stencil:
+                m.weights.add_(t.weights, alpha=lam)
+                if t.weighted_target is not None:
+                    if m.weighted_target is None:
+                        m.weighted_target = torch.zeros_like(m.weights)
+                    m.weighted_target.add_(t.weighted_target, alpha=lam)
+                continue
+            pos = {o: n for n, o in enumerate(st.offsets)}
+            if t.weighted_target is not None and m.weighted_target is None:
+                m.weighted_target = torch.zeros_like(m.weights)
+            for n, o in enumerate(t.stencil.offsets):
+                m.weights[:, pos[o]].add_(t.weights[:, n], alpha=lam)
+                if t.weighted_target is not None:
+                    m.weighted_target[:, pos[o]].add_(t.weighted_target[:, n], alpha=lam)
         self.terms: list[tuple[float, QuadraticTerm]] = [(1.0, m) for m in merged.values()] + others
         first = active[0][1]
         self.shape = tuple(first.shape)

@@ -122,10 +122,15 @@ class Stencil:
         diff = x.unsqueeze(2) - self.neighbours(x)
         return diff * self.valid.to(x.dtype)
 
-    def adjoint(self, d: torch.Tensor) -> torch.Tensor:
-        """``M^T d``: scatter pair values ``(B, C, K, H, W)`` back to ``(B, C, H, W)``."""
+    def adjoint(self, d: torch.Tensor, zero_invalid: bool = True) -> torch.Tensor:
+        """``M^T d``: scatter pair values ``(B, C, K, H, W)`` back to ``(B, C, H, W)``.
+
+        ``zero_invalid=False`` skips masking the pairs that leave the image, for values that
+        are 0 there already.
+        """
         b, c, k_, h, w = d.shape
-        d = d * self.valid.to(d.dtype)
+        if zero_invalid:
+            d = d * self.valid.to(d.dtype)
         out = d.sum(dim=2)
         for k, (dy, dx) in enumerate(self.offsets):
             ys_i, xs_i, ys_j, xs_j = shift_slices(dy, dx, h, w)

@@ -16,7 +16,14 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["gather", "gather_parallel", "matting_windows", "matting_weights", "affinity"]
+__all__ = [
+    "gather",
+    "gather_parallel",
+    "matting_windows",
+    "matting_weights",
+    "affinity",
+    "bregman_replay",
+]
 
 
 def _gather(z, w, dys, dxs, out, square, degree, r0, r1):  # pragma: no cover - compiled
@@ -91,10 +98,23 @@ def _matting_weights(qp, img, dys, dxs, out, r0, r1):  # pragma: no cover - comp
     """
     nb, _, h, wd = img.shape
     nk = dys.shape[0]
+    wp = qp.shape[3]
+    sr = np.empty((11, wd))  # a row's window sums
+    vs = np.empty((3, 11, wp))  # vertical sums of the window summands
     for r in range(r0, r1):
         b = r // h
         y = r - b * h
-        sr = np.empty((11, wd))  # this row's window sums
+        # vs[d]: over padded rows y + d .. y + 2
+        for c in range(11):
+            r2 = qp[b, c, y + 2]
+            r1_ = qp[b, c, y + 1]
+            r0_ = qp[b, c, y]
+            for x in range(wp):
+                v = r2[x]
+                vs[2, c, x] = v
+                v = v + r1_[x]
+                vs[1, c, x] = v
+                vs[0, c, x] = v + r0_[x]
         for k in range(nk):
             dy = dys[k]
             dx = dxs[k]
@@ -110,11 +130,10 @@ def _matting_weights(qp, img, dys, dxs, out, r0, r1):  # pragma: no cover - comp
             for c in range(11):
                 acc = sr[c, :n]
                 acc[:] = 0.0
-                for yy in range(y + dy, y + 3):
-                    for t in range(ncol):
-                        row = qp[b, c, yy, lo + t : lo + t + n]
-                        for x in range(n):
-                            acc[x] += row[x]
+                for t in range(ncol):
+                    row = vs[dy, c, lo + t : lo + t + n]
+                    for x in range(n):
+                        acc[x] += row[x]
             ii = img[b, :, y, x0 : x0 + n]
             jj = img[b, :, y + dy, x0 + dx : x0 + dx + n]
             o = orow[x0 : x0 + n]
@@ -142,8 +161,9 @@ def _matting_windows(img, mask, eps, qp, r0, r1):  # pragma: no cover - compiled
     regulariser. Writes ``qp[b, :, wy + 2, wx + 2] = v·(D [6 symmetric entries], D μ,
     μᵀ D μ, 1)`` for the ``(B·(H − 2))`` window rows, where ``μ`` and ``Σ`` are the window's
     mean and covariance, ``D = (Σ + ε/9 U)⁻¹`` by the ``L D Lᵀ`` closed form of
-    ``matting._inv_sym3`` and ``v`` 1 for a kept window, 0 for a dropped one. The border of
-    ``qp`` is left to the caller (zeros).
+    ``matting._inv_sym3`` and ``v`` 1 for a kept window, 0 for a dropped one. ``qp``'s first
+    two and last two rows are left to the caller (zeros); its first two and last two columns
+    are zeroed here, in the rows of these windows.
     """
     nb, _, h, wd = img.shape
     hw = h - 2
@@ -151,6 +171,11 @@ def _matting_windows(img, mask, eps, qp, r0, r1):  # pragma: no cover - compiled
     for r in range(r0, r1):
         b = r // hw
         wy = r - b * hw
+        for c in range(11):
+            qp[b, c, wy + 2, 0] = 0.0
+            qp[b, c, wy + 2, 1] = 0.0
+            qp[b, c, wy + 2, wd] = 0.0
+            qp[b, c, wy + 2, wd + 1] = 0.0
         for wx in range(wd - 2):
             s0 = s1 = s2 = 0.0
             s00 = s11 = s22 = s01 = s02 = s12 = 0.0
@@ -216,6 +241,72 @@ def _matting_windows(img, mask, eps, qp, r0, r1):  # pragma: no cover - compiled
             qp[b, 9, py, px] = m0 * dm0 + m1 * dm1 + m2 * dm2
             qp[b, 10, py, px] = 1.0
     return qp
+
+
+def _bregman_replay(zs, w, dys, dxs, lam, rhs, halo, r0, r1):  # pragma: no cover - compiled
+    """A Split-Bregman update of ``StencilL1Term`` from the zero state, replaying its history.
+
+    ``zs`` ``(m + 1, B, C, H, W)``: the ``z`` of the ``m`` earlier updates of this solve, then
+    the current one. For every pair ``(i, j = i + o_k)`` and channel the Bregman variable is
+    rebuilt as Split-Bregman left it, ``b ← clamp(b + w (z_i − z_j), −λ, λ)`` over the
+    history from ``b = 0`` (the torch path's operations in its order, so it is the value that
+    path stores), then ``u = b + w (z_i − z_j)``, ``b' = clamp(u, −λ, λ)``, and ``w (u − 2b')``
+    (``w (d − b')``) is added to ``rhs_i`` and subtracted from ``rhs_j``. No state is read or
+    written: the ``(B, C, K, H, W)`` variable is never stored.
+
+    Rows ``r0 .. r1 − 1`` of the ``B·H`` rows are this call's: it zeroes and writes them;
+    contributions to the rows after ``r1`` go to ``halo`` ``(D, C, W)`` (``D`` the largest
+    ``dy``; row ``r1 + t`` at ``halo[t]``, zeroed here) for the caller to add. ``lam`` must
+    have the arrays' dtype (a float64 scalar would turn the float32 sums into float64 ones).
+    """
+    m = zs.shape[0] - 1
+    nc, h, wd = zs.shape[2], zs.shape[3], zs.shape[4]
+    nk = dys.shape[0]
+    bbuf = np.empty(wd, dtype=zs.dtype)  # a row of replayed Bregman variables
+    halo[:] = 0.0
+    for r in range(r0, r1):
+        b = r // h
+        y = r - b * h
+        for c in range(nc):
+            rhs[b, c, y, :] = 0.0
+    for r in range(r0, r1):
+        b = r // h
+        y = r - b * h
+        for k in range(nk):
+            dy = dys[k]
+            dx = dxs[k]
+            if y + dy >= h:
+                continue
+            x0, n = _span(dx, wd)
+            wr = w[b, k, y, x0 : x0 + n]
+            rj = r + dy
+            for c in range(nc):
+                oi = rhs[b, c, y, x0 : x0 + n]
+                if rj < r1:
+                    oj = rhs[b, c, y + dy, x0 + dx : x0 + dx + n]
+                else:
+                    oj = halo[rj - r1, c, x0 + dx : x0 + dx + n]
+                bb = bbuf[:n]
+                bb[:] = 0.0
+                for s in range(m):
+                    zi = zs[s, b, c, y, x0 : x0 + n]
+                    zj = zs[s, b, c, y + dy, x0 + dx : x0 + dx + n]
+                    for t in range(n):
+                        u = (zi[t] - zj[t]) * wr[t] + bb[t]
+                        bb[t] = min(max(u, -lam), lam)
+                zi = zs[m, b, c, y, x0 : x0 + n]
+                zj = zs[m, b, c, y + dy, x0 + dx : x0 + dx + n]
+                for t in range(n):  # bb becomes w (d − b'), the pair's contribution
+                    wt = wr[t]
+                    u = (zi[t] - zj[t]) * wt + bb[t]
+                    bn = min(max(u, -lam), lam)
+                    bb[t] = (u - (bn + bn)) * wt  # bn + bn is exact: one rounding, as torch
+                # separate loops: oi and oj may overlap (dy = 0), each loop still vectorises
+                for t in range(n):
+                    oi[t] += bb[t]
+                for t in range(n):
+                    oj[t] -= bb[t]
+    return rhs
 
 
 def _affinity(
@@ -288,6 +379,8 @@ _jit = njit(nogil=True, cache=True, fastmath=True, boundscheck=False)
 gather = njit(nogil=True, cache=True, boundscheck=False)(_gather)
 gather_parallel = njit(parallel=True, nogil=True, cache=True, boundscheck=False)(_gather_all)
 matting_weights = _jit(_matting_weights)
+# IEEE semantics: the replayed Bregman variable is the one the torch path would have stored
+bregman_replay = njit(nogil=True, cache=True, boundscheck=False)(_bregman_replay)
 # the window statistics keep IEEE semantics, as the torch ops that they replace
 matting_windows = njit(nogil=True, cache=True, boundscheck=False)(_matting_windows)
 affinity = _jit(_affinity)

@@ -33,6 +33,10 @@ class PCGResult:
         converged: whether every batch item reached the tolerance (confirmed on the true
             residual; an item whose ``p^T A p <= 0`` is stopped and counts as not converged).
         item_iterations: ``(B,)`` iterations each batch item ran before it stopped.
+        r: the residual ``b − A x`` that CG carried to the end (recursive, or the true one
+            where it was replaced), shaped like ``b``: a later solve with the same ``A`` and
+            a new right-hand side ``b'`` from ``x`` can start from ``r + (b' − b)``
+            (``r0=``) instead of a product.
     """
 
     x: torch.Tensor
@@ -40,6 +44,7 @@ class PCGResult:
     residual: torch.Tensor
     converged: bool
     item_iterations: torch.Tensor | None = None
+    r: torch.Tensor | None = None
 
 
 def _bdot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -60,6 +65,7 @@ def pcg(
     max_iter: int = 500,
     warn: bool = True,
     true_residual: bool = True,
+    r0: torch.Tensor | None = None,
 ) -> PCGResult:
     """Batched preconditioned conjugate gradient.
 
@@ -77,6 +83,8 @@ def pcg(
             ``residual`` (one extra product). ``False`` reports the recursive residual, for
             callers that run a fixed, small number of iterations (inner solves) and do not
             need the exact figure; convergence is still confirmed on the true residual.
+        r0: the residual ``b − A x0`` when the caller already has it (e.g. from the last
+            solve's :attr:`PCGResult.r`), saving the first product; shaped like ``b``.
 
     Raises:
         ShapeError: ``x0`` or the preconditioner is not shaped like ``b``.
@@ -111,7 +119,12 @@ def pcg(
     check_finite(x, "warm start x0")
     bnorm = _bdot(b, b).sqrt()
     bnorm = torch.where(bnorm > 0, bnorm, torch.ones_like(bnorm))
-    r = b - matvec(x)
+    if r0 is None:
+        r = b - matvec(x)
+    else:
+        if r0.shape != b.shape:
+            raise ShapeError(f"r0 has shape {tuple(r0.shape)} but b has shape {tuple(b.shape)}")
+        r = r0.clone(memory_format=torch.contiguous_format)
     z = apply_m(r)
     p = z.clone()
     rz = _bdot(r, z)
@@ -157,8 +170,8 @@ def pcg(
     converged = bool(reached.all())
     if true_residual:
         # report the true residual (the recursive one drifts in float32)
-        r_true = b - matvec(x)
-        res = _bdot(r_true, r_true).sqrt() / bnorm
+        r = b - matvec(x)
+        res = _bdot(r, r).sqrt() / bnorm
     if warn and not converged:
         why = " (breakdown: the operator is not positive definite)" if bool(broke.any()) else ""
         warnings.warn(
@@ -167,4 +180,6 @@ def pcg(
             ConvergenceWarning,
             stacklevel=2,
         )
-    return PCGResult(x=x, iterations=it, residual=res, converged=converged, item_iterations=iters)
+    return PCGResult(
+        x=x, iterations=it, residual=res, converged=converged, item_iterations=iters, r=r
+    )

@@ -20,7 +20,12 @@ gives the images' one-by-one results.
 Terms are duck-typed (see :mod:`torchiid.priors.reflectance_terms`):
 ``bregman_step(z, b, λ, with_l1) -> (b, rhs, l1)`` (``b=None``: the zero state),
 ``normal_matvec(z)``, ``normal_diagonal()``, ``l1(z)``; optionally ``initial_state`` (a
-Bregman variable to start from instead of the zero state, updated in place).
+Bregman variable to start from instead of the zero state, updated in place) and
+``skips_final_state``: when true, the last Bregman update of a solve is called with
+``final=True`` and the term may leave its state unwritten (no later step reads it).
+
+Each ``z`` step after the first starts its CG from the last one's residual, corrected by the
+change of the right-hand side (``b' − A z = (b − A z) + (b' − b)``), instead of a product.
 """
 
 from __future__ import annotations
@@ -125,11 +130,14 @@ def split_bregman(
     active_terms = [(t, g) for t, g in zip(terms, gammas, strict=True) if g > 0]
     lams = [g / theta for _, g in active_terms]
 
-    def bregman(z: torch.Tensor, states: list[torch.Tensor | None]):
+    def bregman(z: torch.Tensor, states: list[torch.Tensor | None], final: bool):
         rhs = 2.0 * gamma_a * rho
         obj = gamma_a * (z - rho).square().flatten(1).sum(dim=1) if track_objective else None
         for n, ((term, g), lam) in enumerate(zip(active_terms, lams, strict=True)):
-            states[n], r, l1 = term.bregman_step(z, states[n], lam, with_l1=track_objective)
+            # final: no later step reads this state; a term that keeps no state for a later
+            # solve need not store it (StencilL1Term: 60 planes per channel left unwritten)
+            kw = {"final": True} if final and getattr(term, "skips_final_state", False) else {}
+            states[n], r, l1 = term.bregman_step(z, states[n], lam, with_l1=track_objective, **kw)
             rhs = rhs.add_(r, alpha=theta)
             if track_objective:
                 obj = obj + g * l1
@@ -137,7 +145,7 @@ def split_bregman(
 
     # None: the zero state; a term's initial_state (e.g. the previous alternation's) warm-starts
     states: list[torch.Tensor | None] = [getattr(t, "initial_state", None) for t, _ in active_terms]
-    rhs, obj = bregman(z, states)
+    rhs, obj = bregman(z, states, final=max_outer <= 1)
     objective = [obj] if track_objective else None
     outer = torch.zeros(bsz, dtype=torch.long, device=rho.device)
     change = torch.zeros(bsz, dtype=rho.dtype, device=rho.device)
@@ -162,17 +170,25 @@ def split_bregman(
         return out.mul_(theta).add_(xi, alpha=2.0 * gamma_a).view(bsz * c, 1, h, w)
 
     cg_total = 0
+    last = None  # the last z step's (rhs, PCGResult), for its residual
     for it in range(max_outer):
+        b_flat = rhs.reshape(bsz * c, 1, h, w)
+        r0 = None
+        if last is not None and last[1].r is not None and bool(active.all()):
+            # z is the last step's solution: b' − A z = (b − A z) + (b' − b), no product
+            r0 = last[1].r + (b_flat - last[0])
         res = pcg(
             matvec,
-            rhs.reshape(bsz * c, 1, h, w),
+            b_flat,
             x0=z.reshape(bsz * c, 1, h, w),
             precond=precond,
             tol=cg_tol,
             max_iter=cg_max_iter,
             warn=False,
             true_residual=False,
+            r0=r0,
         )
+        last = (b_flat, res)
         cg_total += res.iterations
         cg_res = torch.where(active, res.residual.view(bsz, c).amax(dim=1), cg_res)
         z_new = res.x.view(bsz, c, h, w)
@@ -188,7 +204,7 @@ def split_bregman(
                 for t, g in active_terms:
                     obj_new = obj_new + g * t.l1(z)
         else:
-            rhs, obj_new = bregman(z, states)
+            rhs, obj_new = bregman(z, states, final=it == max_outer - 2)
         if track_objective:
             obj = torch.where(active, obj_new, obj)
             objective.append(obj)

@@ -301,7 +301,14 @@ def build_reflectance_terms(
         warm = o.warm_state and cache is not None and cache.state_valid
         terms["A+B"] = (
             float(gl + gm),
-            StencilL1Term(stencil, merged, zero_invalid=False, state=state, warm=warm),
+            StencilL1Term(
+                stencil,
+                merged,
+                zero_invalid=False,
+                state=state,
+                warm=warm,
+                keep_state=o.warm_state,  # else nothing reads the last update's state
+            ),
         )
         if cache is not None:
             cache.state_valid = False  # valid again once the solve has written it
@@ -377,7 +384,7 @@ def solve_reflectance(
     )
     t5 = time.perf_counter()
     if cache is not None and "A+B" in built.terms and sol.outer_iterations.max() > 0:
-        cache.state_valid = True
+        cache.state_valid = built.terms["A+B"][1].state_written
     refl = sol.z.clamp_min(0.0)
     if mask is not None:
         refl = torch.where(mask, refl, rho)
