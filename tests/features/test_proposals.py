@@ -194,3 +194,19 @@ def test_atom_histograms(astronaut):
     for c in range(3):  # colour bins against numpy's histogram
         ref, _ = np.histogram(astronaut[..., c].reshape(-1)[atoms == 2], bins=25, range=(0, 1))
         np.testing.assert_array_equal(hist[2, c * 25 : (c + 1) * 25], ref)
+
+
+def test_segmentations_in_threads_give_the_one_thread_proposals():
+    # with 2 threads the strategies' Felzenszwalb segmentations run at once; the proposals
+    # (and their random ranking) are the same as on one thread
+    img = torch.from_numpy(data.coffee()[::4, ::4].copy()).permute(2, 0, 1).float() / 255
+    one = selective_search(img, seed=3)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        two = selective_search(img, seed=3)
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(one.atom_labels, two.atom_labels)
+    assert torch.equal(one.membership, two.membership)
+    assert torch.equal(one.boxes, two.boxes) and torch.equal(one.strategy, two.strategy)

@@ -242,9 +242,11 @@ def test_inputs_the_kernels_do_not_handle_keep_the_torch_results(torch_ops):
 
 
 @pytest.mark.parametrize("history", [0, 1, 2])
-def test_replayed_bregman_update_matches_the_stored_state_update(history):
+def test_replayed_bregman_update_matches_the_stored_state_update(history, monkeypatch):
     """The kernel's right-hand side equals the torch path's update from the stored state
-    after the same earlier updates (batch of 2, a height that splits into uneven bands)."""
+    after the same earlier updates: batch of 2, 11-row-deep pairs, blocks of 8 rows (block
+    boundaries inside an image and across the two images, halos of 5 rows)."""
+    monkeypatch.setattr(kernels, "REPLAY_BLOCK_ROWS", 8)
     g = torch.Generator().manual_seed(history)
     st = Stencil.square(27, 21, 11)
     w = torch.rand(2, st.num_offsets, 27, 21, generator=g) * st.valid
@@ -255,3 +257,21 @@ def test_replayed_bregman_update_matches_the_stored_state_update(history):
         b, rhs, _ = term.bregman_step(z, b, 0.05, with_l1=False)
     fast = kernels.bregman_replay(zs[:-1], zs[-1], w, st.offsets, 0.05)
     torch.testing.assert_close(fast, rhs, rtol=1e-5, atol=1e-5)
+
+
+def test_replayed_bregman_update_does_not_depend_on_the_thread_count(monkeypatch):
+    g = torch.Generator().manual_seed(3)
+    st = Stencil.square(45, 23, 11)
+    w = torch.rand(1, st.num_offsets, 45, 23, generator=g) * st.valid
+    z0, z1 = (torch.rand(1, 3, 45, 23, generator=g) for _ in range(2))
+    monkeypatch.setattr(kernels, "REPLAY_BLOCK_ROWS", 4)
+    runs = []
+    before = torch.get_num_threads()
+    try:
+        for threads, work in ((1, float("inf")), (2, 0), (3, 0)):
+            monkeypatch.setattr(kernels, "PARALLEL_WORK", work)
+            torch.set_num_threads(threads)
+            runs.append(kernels.bregman_replay([z0], z1, w, st.offsets, 0.05))
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(runs[0], runs[1]) and torch.equal(runs[0], runs[2])

@@ -223,6 +223,26 @@ def test_warm_bregman_state_reaches_the_same_minimum_in_fewer_iterations():
     torch.testing.assert_close(again.reflectance, cold.reflectance)
 
 
+def test_a_solve_that_keeps_no_state_leaves_the_cache_cold():
+    # without warm_state the last update's state is not written (and on CPU not stored at
+    # all, replayed): the cache must not offer it to a later warm start, which then starts
+    # cold, exactly as with a fresh cache
+    s, rho, gpca = _scene()
+    problem = ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels)
+    from torchiid.params import Parameters
+
+    opts = Parameters.preset("default").reflectance_options()
+    assert not opts.warm_state and opts.max_outer == 2
+    cache = ReflectanceCache()
+    first = solve_reflectance(problem, W, opts, cache=cache)
+    assert not cache.state_valid
+    warm_opts = ReflectanceOptions(**{**opts.__dict__, "warm_state": True})
+    a = solve_reflectance(problem, W, warm_opts, z0=first.reflectance, cache=cache)
+    b = solve_reflectance(problem, W, warm_opts, z0=first.reflectance, cache=ReflectanceCache())
+    torch.testing.assert_close(a.reflectance, b.reflectance, rtol=0, atol=0)
+    assert cache.state_valid  # a warm_state solve stores its last state
+
+
 def test_warm_term_needs_a_state():
     st = Stencil.square(8, 8, 3)
     with pytest.raises(ParameterError, match="warm"):

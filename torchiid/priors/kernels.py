@@ -199,8 +199,10 @@ def bregman_replay(
     ``Σ_k (W M)ᵀ (d_k − b_k)`` at ``z`` for a solve that started from the zero state and made
     its earlier updates at the ``z`` in ``history`` (oldest first): each pair's Bregman
     variable is recomputed from them instead of read from a stored ``(B, C, K, H, W)``
-    state (see ``stencil_kernels._bregman_replay``). Rows run in bands on torch's thread
-    count; each band's contributions below its last row are added after all bands end.
+    state (see ``stencil_kernels._bregman_replay``). The rows are cut into blocks of
+    :data:`REPLAY_BLOCK_ROWS`, run in runs of whole blocks on torch's thread count; each
+    block's contributions to the rows after it are added once all blocks are done, in block
+    order, so the result does not depend on the number of threads.
 
     Shape:
         history items and z ``(B, C, H, W)``, weights ``(B, K, H, W)`` -> ``(B, C, H, W)``.
@@ -214,31 +216,33 @@ def bregman_replay(
     rhs = torch.empty(b, c, h, w, dtype=z.dtype)
     depth = max(1, int(dys.max()))
     rows = b * h
-    n = min(torch.get_num_threads(), rows)
+    block = REPLAY_BLOCK_ROWS
+    blocks = -(-rows // block)
+    n = min(torch.get_num_threads(), blocks)
     work = rows * w * len(offsets) * c * (4 + 3 * len(history))
     if n <= 1 or work < PARALLEL_WORK:
         n = 1
-    cuts = [rows * i // n for i in range(n + 1)]
-    halos = [np.empty((depth, c, w), dtype=rhs.numpy().dtype) for _ in range(n)]
+    cuts = [blocks * i // n for i in range(n + 1)]  # each thread: a run of whole blocks
+    halo = np.empty((blocks, depth, c, w), dtype=rhs.numpy().dtype)
     lam_t = rhs.numpy().dtype.type(lam)
-    args = (zs.numpy(), weights.contiguous().numpy(), dys, dxs, lam_t, rhs.numpy())
+    args = (zs.numpy(), weights.contiguous().numpy(), dys, dxs, lam_t, rhs.numpy(), halo, block)
     if n == 1:
-        kernel.bregman_replay(*args, halos[0], 0, rows)
+        kernel.bregman_replay(*args, 0, blocks)
     else:
         pool = _executor(n - 1)
         futures = [
-            pool.submit(kernel.bregman_replay, *args, halos[i], cuts[i], cuts[i + 1])
-            for i in range(1, n)
+            pool.submit(kernel.bregman_replay, *args, cuts[i], cuts[i + 1]) for i in range(1, n)
         ]
-        kernel.bregman_replay(*args, halos[0], cuts[0], cuts[1])
+        kernel.bregman_replay(*args, cuts[0], cuts[1])
         for f in futures:
             f.result()
-    for i in range(n - 1):  # the last band's halo lies past the image: all zero
-        for t in range(depth):
-            r = cuts[i + 1] + t
-            if r < rows:
-                rhs[r // h, :, r % h] += torch.from_numpy(halos[i][t])
+    kernel.add_halos(rhs.numpy(), halo, block)
     return rhs
+
+
+#: rows per block of :func:`bregman_replay` (fixed, so that the result does not depend on
+#: the thread count)
+REPLAY_BLOCK_ROWS = 32
 
 
 def matting_window_terms(

@@ -297,8 +297,8 @@ def matting_stencil(
     What the shading stage uses. Where the compiled kernels apply
     (:func:`~torchiid.priors.kernels.usable`) the window statistics and the pair weights are
     computed in two passes over the image, without the float64 torch temporaries of
-    :class:`MattingQuadratic` (measured at 512×384, 2 threads: about 8 ms against 55–65 ms);
-    otherwise it is exactly ``matting_laplacian(base, eps, mask).as_stencil()``.
+    :class:`MattingQuadratic` (``python tools/bench_kernels.py``, 512×384, 2 threads: 26 ms
+    against 68 ms); otherwise it is exactly ``matting_laplacian(base, eps, mask).as_stencil()``.
 
     Args:
         base: ``(B, 3, H, W)`` linear RGB base image (see :func:`matting_laplacian`).

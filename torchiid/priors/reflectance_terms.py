@@ -55,6 +55,7 @@ __all__ = [
     "pair_affinity",
     "StencilL1Term",
     "PairL1Term",
+    "REPLAY_STEPS",
     "data_term",
 ]
 
@@ -295,6 +296,9 @@ class StencilL1Term(_L1Term):
             solve (needed when ``state`` is to warm-start a later solve). ``False``: the last
             update (``final=True``) leaves it unwritten, saving a write of ``C·K`` planes
             (141 MB at 512×384); :attr:`state_written` then tells that the storage is stale.
+        replay: with ``keep_state=False``, keep the state as the ``z`` of its updates instead
+            of storing it (see :meth:`bregman_step`); ``False`` for solves that make more
+            than ``REPLAY_STEPS + 1`` updates, which would replay at a loss.
     """
 
     def __init__(
@@ -306,6 +310,7 @@ class StencilL1Term(_L1Term):
         state: torch.Tensor | None = None,
         warm: bool = False,
         keep_state: bool = True,
+        replay: bool = True,
     ) -> None:
         if warm and state is None:
             raise ParameterError(
@@ -318,6 +323,7 @@ class StencilL1Term(_L1Term):
         self.state = state
         self.warm = warm
         self.keep_state = keep_state
+        self.replay = replay
         self.state_written = False  # the last update stored its Bregman variable
 
     @property
@@ -423,6 +429,7 @@ class StencilL1Term(_L1Term):
         """
         replayable = (
             not self.keep_state
+            and self.replay
             and not with_l1
             and (b is None or isinstance(b, _Replay))
             and z.shape[0] == self.weights.shape[0]

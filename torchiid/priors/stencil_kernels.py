@@ -23,6 +23,7 @@ __all__ = [
     "matting_weights",
     "affinity",
     "bregman_replay",
+    "add_halos",
 ]
 
 
@@ -243,7 +244,7 @@ def _matting_windows(img, mask, eps, qp, r0, r1):  # pragma: no cover - compiled
     return qp
 
 
-def _bregman_replay(zs, w, dys, dxs, lam, rhs, halo, r0, r1):  # pragma: no cover - compiled
+def _bregman_replay(zs, w, dys, dxs, lam, rhs, halo, block, k0, k1):  # pragma: no cover
     """A Split-Bregman update of ``StencilL1Term`` from the zero state, replaying its history.
 
     ``zs`` ``(m + 1, B, C, H, W)``: the ``z`` of the ``m`` earlier updates of this solve, then
@@ -254,58 +255,80 @@ def _bregman_replay(zs, w, dys, dxs, lam, rhs, halo, r0, r1):  # pragma: no cove
     (``w (d − b')``) is added to ``rhs_i`` and subtracted from ``rhs_j``. No state is read or
     written: the ``(B, C, K, H, W)`` variable is never stored.
 
-    Rows ``r0 .. r1 − 1`` of the ``B·H`` rows are this call's: it zeroes and writes them;
-    contributions to the rows after ``r1`` go to ``halo`` ``(D, C, W)`` (``D`` the largest
-    ``dy``; row ``r1 + t`` at ``halo[t]``, zeroed here) for the caller to add. ``lam`` must
-    have the arrays' dtype (a float64 scalar would turn the float32 sums into float64 ones).
+    The ``B·H`` rows are cut into blocks of ``block`` rows; this call does blocks ``k0 .. k1 −
+    1``. Each block zeroes and writes its own rows; its contributions to the rows after it go
+    to ``halo[blk]`` ``(D, C, W)`` (``D`` the largest ``dy``; row ``end + t`` at ``halo[blk,
+    t]``, zeroed here), which :func:`_add_halos` adds afterwards. The blocks do not depend on
+    the number of threads, so neither does the result. ``lam`` must have the arrays' dtype (a
+    float64 scalar would turn the float32 sums into float64 ones).
     """
     m = zs.shape[0] - 1
-    nc, h, wd = zs.shape[2], zs.shape[3], zs.shape[4]
+    nb, nc, h, wd = zs.shape[1], zs.shape[2], zs.shape[3], zs.shape[4]
+    rows = nb * h
     nk = dys.shape[0]
     bbuf = np.empty(wd, dtype=zs.dtype)  # a row of replayed Bregman variables
-    halo[:] = 0.0
-    for r in range(r0, r1):
-        b = r // h
-        y = r - b * h
-        for c in range(nc):
-            rhs[b, c, y, :] = 0.0
-    for r in range(r0, r1):
-        b = r // h
-        y = r - b * h
-        for k in range(nk):
-            dy = dys[k]
-            dx = dxs[k]
-            if y + dy >= h:
-                continue
-            x0, n = _span(dx, wd)
-            wr = w[b, k, y, x0 : x0 + n]
-            rj = r + dy
+    for blk in range(k0, k1):
+        r0 = blk * block
+        r1 = min(rows, r0 + block)
+        halo[blk] = 0.0
+        for r in range(r0, r1):
+            b = r // h
+            y = r - b * h
             for c in range(nc):
-                oi = rhs[b, c, y, x0 : x0 + n]
-                if rj < r1:
-                    oj = rhs[b, c, y + dy, x0 + dx : x0 + dx + n]
-                else:
-                    oj = halo[rj - r1, c, x0 + dx : x0 + dx + n]
-                bb = bbuf[:n]
-                bb[:] = 0.0
-                for s in range(m):
-                    zi = zs[s, b, c, y, x0 : x0 + n]
-                    zj = zs[s, b, c, y + dy, x0 + dx : x0 + dx + n]
+                rhs[b, c, y, :] = 0.0
+        for r in range(r0, r1):
+            b = r // h
+            y = r - b * h
+            for k in range(nk):
+                dy = dys[k]
+                dx = dxs[k]
+                if y + dy >= h:
+                    continue
+                x0, n = _span(dx, wd)
+                wr = w[b, k, y, x0 : x0 + n]
+                rj = r + dy
+                for c in range(nc):
+                    oi = rhs[b, c, y, x0 : x0 + n]
+                    if rj < r1:
+                        oj = rhs[b, c, y + dy, x0 + dx : x0 + dx + n]
+                    else:
+                        oj = halo[blk, rj - r1, c, x0 + dx : x0 + dx + n]
+                    bb = bbuf[:n]
+                    bb[:] = 0.0
+                    for s in range(m):
+                        zi = zs[s, b, c, y, x0 : x0 + n]
+                        zj = zs[s, b, c, y + dy, x0 + dx : x0 + dx + n]
+                        for t in range(n):
+                            u = (zi[t] - zj[t]) * wr[t] + bb[t]
+                            bb[t] = min(max(u, -lam), lam)
+                    zi = zs[m, b, c, y, x0 : x0 + n]
+                    zj = zs[m, b, c, y + dy, x0 + dx : x0 + dx + n]
+                    for t in range(n):  # bb becomes w (d − b'), the pair's contribution
+                        wt = wr[t]
+                        u = (zi[t] - zj[t]) * wt + bb[t]
+                        bn = min(max(u, -lam), lam)
+                        bb[t] = (u - (bn + bn)) * wt  # bn + bn is exact: one rounding
+                    # separate loops: oi and oj may overlap (dy = 0), each still vectorises
                     for t in range(n):
-                        u = (zi[t] - zj[t]) * wr[t] + bb[t]
-                        bb[t] = min(max(u, -lam), lam)
-                zi = zs[m, b, c, y, x0 : x0 + n]
-                zj = zs[m, b, c, y + dy, x0 + dx : x0 + dx + n]
-                for t in range(n):  # bb becomes w (d − b'), the pair's contribution
-                    wt = wr[t]
-                    u = (zi[t] - zj[t]) * wt + bb[t]
-                    bn = min(max(u, -lam), lam)
-                    bb[t] = (u - (bn + bn)) * wt  # bn + bn is exact: one rounding, as torch
-                # separate loops: oi and oj may overlap (dy = 0), each loop still vectorises
-                for t in range(n):
-                    oi[t] += bb[t]
-                for t in range(n):
-                    oj[t] -= bb[t]
+                        oi[t] += bb[t]
+                    for t in range(n):
+                        oj[t] -= bb[t]
+    return rhs
+
+
+def _add_halos(rhs, halo, block):  # pragma: no cover - compiled
+    """Add each block's ``halo`` (:func:`_bregman_replay`) to the rows after it, in order."""
+    nb, _, h, _ = rhs.shape
+    rows = nb * h
+    for blk in range(halo.shape[0]):
+        end = min(rows, (blk + 1) * block)
+        for t in range(halo.shape[1]):
+            r = end + t
+            if r >= rows:
+                break
+            b = r // h
+            y = r - b * h
+            rhs[b, :, y, :] += halo[blk, t]
     return rhs
 
 
@@ -381,6 +404,7 @@ gather_parallel = njit(parallel=True, nogil=True, cache=True, boundscheck=False)
 matting_weights = _jit(_matting_weights)
 # IEEE semantics: the replayed Bregman variable is the one the torch path would have stored
 bregman_replay = njit(nogil=True, cache=True, boundscheck=False)(_bregman_replay)
+add_halos = njit(nogil=True, cache=True, boundscheck=False)(_add_halos)
 # the window statistics keep IEEE semantics, as the torch ops that they replace
 matting_windows = njit(nogil=True, cache=True, boundscheck=False)(_matting_windows)
 affinity = _jit(_affinity)

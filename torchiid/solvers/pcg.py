@@ -33,10 +33,10 @@ class PCGResult:
         converged: whether every batch item reached the tolerance (confirmed on the true
             residual; an item whose ``p^T A p <= 0`` is stopped and counts as not converged).
         item_iterations: ``(B,)`` iterations each batch item ran before it stopped.
-        r: the residual ``b − A x`` that CG carried to the end (recursive, or the true one
-            where it was replaced), shaped like ``b``: a later solve with the same ``A`` and
-            a new right-hand side ``b'`` from ``x`` can start from ``r + (b' − b)``
-            (``r0=``) instead of a product.
+        r: the residual ``b − A x`` at the end, shaped like ``b``: the true one with
+            ``true_residual`` and for items that reached the tolerance, else the one CG
+            carried (recursive). A later solve with the same ``A`` and a new right-hand side
+            ``b'`` from ``x`` can start from ``r + (b' − b)`` (``r0=``) instead of a product.
     """
 
     x: torch.Tensor
@@ -158,9 +158,10 @@ def pcg(
             r_true = b - matvec(x)
             res_true = _bdot(r_true, r_true).sqrt() / bnorm
             redo = done & (res_true > tol)
+            # the finished items keep their true residual (what PCGResult.r hands on)
+            r = torch.where(_bview(done, r), r_true, r)
             if bool(redo.any()):
                 rv = _bview(redo, r)
-                r = torch.where(rv, r_true, r)
                 z_true = apply_m(r)
                 p = torch.where(rv, z_true, p)
                 rz = torch.where(redo, _bdot(r, z_true), rz)

@@ -65,6 +65,7 @@ from torchiid.core.check import check_finite, check_image, check_same_batch, che
 from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.priors.reflectance_terms import (
     COLOUR_WEIGHTS,
+    REPLAY_STEPS,
     StencilL1Term,
     lab_features,
     merged_stencil_affinity,
@@ -307,7 +308,9 @@ def build_reflectance_terms(
                 zero_invalid=False,
                 state=state,
                 warm=warm,
-                keep_state=o.warm_state,  # else nothing reads the last update's state
+                # only a later warm start reads the last update's state
+                keep_state=o.warm_state and cache is not None,
+                replay=o.max_outer <= REPLAY_STEPS + 1,  # every update's history short enough
             ),
         )
         if cache is not None:
