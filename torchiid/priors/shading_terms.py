@@ -47,6 +47,16 @@ __all__ = [
 ]
 
 
+def _unit_chromaticity(image: torch.Tensor, dark_eps: float) -> torch.Tensor:
+    """``I / ‖I‖`` per pixel (channels floored at ``dark_eps``), ``(B, 3, H, W)``.
+
+    The norm as a sum of squares: ``Tensor.norm(dim=1)`` over the channel axis takes a slow
+    strided path (12.5 ms against 0.14 ms at 512×384).
+    """
+    chrom = image.clamp_min(dark_eps)
+    return chrom / chrom.square().sum(dim=1, keepdim=True).sqrt()
+
+
 def shading_stencil(height: int, width: int, device: torch.device | str | None = None) -> Stencil:
     """The 3x3 half-offset stencil ``(0,1), (1,-1), (1,0), (1,1)`` shared by ``S_m`` and ``S_l``."""
     return Stencil.square(height, width, 3, device=device)
@@ -227,8 +237,7 @@ def edge_confidence(
         # each pixel against its 8 neighbours (shifted copies, replicate-padded borders)
         chrom = None
         if t_e > 0:
-            chrom = image.clamp_min(dark_eps)
-            chrom = chrom / chrom.norm(dim=1, keepdim=True)
+            chrom = _unit_chromaticity(image, dark_eps)
             chrom_pad = F.pad(chrom, (1, 1, 1, 1), mode="replicate")
         if t_d > 0:
             logp_pad = F.pad(logp, (1, 1, 1, 1), mode="replicate")
@@ -305,8 +314,7 @@ def _retinex_factors(
             f"t_i, t_e, t_d and t_h must be >= 0 (0: off), got t_i={t_i}, t_e={t_e}, "
             f"t_d={t_d}, t_h={t_h}"
         )
-    chrom = image.clamp_min(dark_eps)
-    chrom = chrom / chrom.norm(dim=1, keepdim=True)
+    chrom = _unit_chromaticity(image, dark_eps)
     cos = (chrom.unsqueeze(2) * stencil.neighbours(chrom)).sum(1)  # (B, K, H, W)
     p = intensity(image, dark_eps)
     pj = stencil.neighbours(p)[:, 0]
