@@ -190,3 +190,21 @@ def test_unstored_and_replayed_states_give_the_stored_state_iterates(dtype, max_
         # updates at z_0 .. z_{max_outer - 1}: replayed while their history is short enough
         assert calls == [m for m in range(max_outer) if m <= rt.REPLAY_STEPS]
     assert not lean.state_written  # the last update is never stored
+
+
+def test_a_term_told_not_to_replay_stores_its_state():
+    # the reflectance stage sets replay=False for solves longer than REPLAY_STEPS + 1
+    # updates: no replay at all, the stored-state iterates
+    from torchiid.priors import kernels
+
+    rho, term = _problem(b=1, h=15, w=17)
+    kw = dict(gamma_a=1.0, theta=2.0, max_outer=6, tol=0, cg_max_iter=4)
+    stored = split_bregman(rho, [term], [0.05], track_objective=False, **kw)
+    lean = StencilL1Term(term.stencil, term.weights, keep_state=False, replay=False)
+    calls = []
+    real = kernels.bregman_replay
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(kernels, "bregman_replay", lambda h, *a: calls.append(len(h)) or real(h, *a))
+        res = split_bregman(rho, [lean], [0.05], track_objective=False, **kw)
+    assert calls == []
+    torch.testing.assert_close(res.z, stored.z, rtol=2e-5, atol=2e-5)

@@ -46,6 +46,32 @@ def _box_adjoint(a: torch.Tensor) -> torch.Tensor:
     return _box_valid(F.pad(a, (2, 2, 2, 2)))
 
 
+def _check_base(base: torch.Tensor, mask: torch.Tensor | None) -> None:
+    """The checks every construction of ``S_p`` makes on its base image and mask."""
+    if base.dim() == 4 and min(base.shape[-2:]) < 3:
+        raise ImageError(
+            f"the matting Laplacian needs at least 3x3 pixels, got {tuple(base.shape)}"
+        )
+    check_image(base, "base image", channels=3, min_side=3, nonnegative=False)
+    b, _, h, w = base.shape
+    if mask is not None and mask.shape != (b, 1, h, w):
+        raise ShapeError(f"expected mask of shape {(b, 1, h, w)}, got {tuple(mask.shape)}")
+
+
+def _centred64(base: torch.Tensor) -> torch.Tensor:
+    """The base image in float64 minus its per-image colour mean (L is shift-invariant)."""
+    i64 = base.to(torch.float64)
+    return i64 - i64.mean(dim=(2, 3), keepdim=True)
+
+
+def _compiled_stencil(qp: torch.Tensor, i64: torch.Tensor, dtype: torch.dtype):
+    """The 5×5 stencil term from the window summands ``qp`` by the compiled weights pass."""
+    _, _, h, w = i64.shape
+    stencil = Stencil(h, w, half_offsets(5), device=i64.device)
+    weights = kernels.matting_weights(qp, i64, stencil.offsets, dtype)
+    return StencilQuadratic(stencil, weights, zero_invalid=False)  # 0 there already
+
+
 def _inv_sym3(c: torch.Tensor) -> torch.Tensor:
     """Inverse of symmetric positive-definite 3x3 matrices ``(B, 3, 3, ...)`` by ``L D Lᵀ``.
 
@@ -117,11 +143,10 @@ class MattingQuadratic(QuadraticTerm):
     def __init__(
         self, base: torch.Tensor, eps: float = 1e-5, mask: torch.Tensor | None = None
     ) -> None:
-        check_image(base, "base image", channels=3, min_side=3, nonnegative=False)
+        _check_base(base, mask)
         b, _, h, w = base.shape
         dtype = base.dtype
-        i64 = base.to(torch.float64)
-        i64 = i64 - i64.mean(dim=(2, 3), keepdim=True)  # L is invariant to a colour shift
+        i64 = _centred64(base)
         mu = _box_valid(i64) / 9  # (B, 3, h, w)
         outer = i64.unsqueeze(1) * i64.unsqueeze(2)  # (B, 3, 3, H, W)
         cov = _box_valid(outer) / 9 - mu.unsqueeze(1) * mu.unsqueeze(2)
@@ -131,8 +156,6 @@ class MattingQuadratic(QuadraticTerm):
         inv = _inv_sym3(cov)
         valid = torch.ones(b, 1, h - 2, w - 2, dtype=torch.float64, device=base.device)
         if mask is not None:
-            if mask.shape != (b, 1, h, w):
-                raise ShapeError(f"expected mask of shape {(b, 1, h, w)}, got {tuple(mask.shape)}")
             valid = (_box_valid(mask.to(torch.float64)) > 8.5).to(torch.float64)
         # float64 statistics kept for the one-time diagonal / stencil conversion
         self._stats64 = (i64, mu, inv, valid)
@@ -203,10 +226,9 @@ class MattingQuadratic(QuadraticTerm):
             dim=1,
         )
         qp = F.pad(q * v, (2, 2, 2, 2))  # window (wy, wx) at padded (wy + 2, wx + 2)
-        stencil = Stencil(h, w, half_offsets(5), device=self.device)
         if kernels.usable(qp, img):
-            weights = kernels.matting_weights(qp, img, stencil.offsets, self.dtype)
-            return StencilQuadratic(stencil, weights, zero_invalid=False)  # 0 there already
+            return _compiled_stencil(qp, img, self.dtype)
+        stencil = Stencil(h, w, half_offsets(5), device=self.device)
         ip = F.pad(img, (2, 2, 0, 2))
         weights = torch.zeros(b, stencil.num_offsets, h, w, dtype=self.dtype, device=self.device)
         for y0 in range(0, h, band_rows):  # row bands keep the float64 temporaries in cache
@@ -282,10 +304,6 @@ def matting_laplacian(
     Returns:
         :class:`MattingQuadratic`.
     """
-    if base.dim() == 4 and base.shape[-1] >= 1 and min(base.shape[-2:]) < 3:
-        raise ImageError(
-            f"the matting Laplacian needs at least 3x3 pixels, got {tuple(base.shape)}"
-        )
     return MattingQuadratic(base, eps=eps, mask=mask)
 
 
@@ -310,17 +328,6 @@ def matting_stencil(
     """
     if not kernels.usable(base):
         return matting_laplacian(base, eps=eps, mask=mask).as_stencil()
-    if base.dim() == 4 and min(base.shape[-2:]) < 3:
-        raise ImageError(
-            f"the matting Laplacian needs at least 3x3 pixels, got {tuple(base.shape)}"
-        )
-    check_image(base, "base image", channels=3, min_side=3, nonnegative=False)
-    b, _, h, w = base.shape
-    if mask is not None and mask.shape != (b, 1, h, w):
-        raise ShapeError(f"expected mask of shape {(b, 1, h, w)}, got {tuple(mask.shape)}")
-    i64 = base.to(torch.float64)
-    i64 = i64 - i64.mean(dim=(2, 3), keepdim=True)  # L is invariant to a colour shift
-    qp = kernels.matting_window_terms(i64, eps, mask)
-    stencil = Stencil(h, w, half_offsets(5), device=base.device)
-    weights = kernels.matting_weights(qp, i64, stencil.offsets, base.dtype)
-    return StencilQuadratic(stencil, weights, zero_invalid=False)  # 0 there already
+    _check_base(base, mask)
+    i64 = _centred64(base)
+    return _compiled_stencil(kernels.matting_window_terms(i64, eps, mask), i64, base.dtype)

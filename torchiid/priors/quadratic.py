@@ -408,20 +408,18 @@ class SumQuadratic(QuadraticTerm):
                 m.weights = t.weights.new_zeros(t.shape[0], st.num_offsets, *t.shape[2:])
                 m.weighted_target = None
                 merged[id(st)] = m
-            if st is t.stencil:
-                m.weights.add_(t.weights, alpha=lam)
-                if t.weighted_target is not None:
-                    if m.weighted_target is None:
-                        m.weighted_target = torch.zeros_like(m.weights)
-                    m.weighted_target.add_(t.weighted_target, alpha=lam)
-                continue
-            pos = {o: n for n, o in enumerate(st.offsets)}
-            if t.weighted_target is not None and m.weighted_target is None:
-                m.weighted_target = torch.zeros_like(m.weights)
-            for n, o in enumerate(t.stencil.offsets):
-                m.weights[:, pos[o]].add_(t.weights[:, n], alpha=lam)
-                if t.weighted_target is not None:
-                    m.weighted_target[:, pos[o]].add_(t.weighted_target[:, n], alpha=lam)
+            pairs = [(m.weights, t.weights)]
+            if t.weighted_target is not None:
+                if m.weighted_target is None:
+                    m.weighted_target = torch.zeros_like(m.weights)
+                pairs.append((m.weighted_target, t.weighted_target))
+            for dst, src in pairs:
+                if st is t.stencil:
+                    dst.add_(src, alpha=lam)
+                    continue
+                pos = {o: n for n, o in enumerate(st.offsets)}
+                for n, o in enumerate(t.stencil.offsets):
+                    dst[:, pos[o]].add_(src[:, n], alpha=lam)
         self.terms: list[tuple[float, QuadraticTerm]] = [(1.0, m) for m in merged.values()] + others
         first = active[0][1]
         self.shape = tuple(first.shape)

@@ -125,6 +125,7 @@ def pcg(
         if r0.shape != b.shape:
             raise ShapeError(f"r0 has shape {tuple(r0.shape)} but b has shape {tuple(b.shape)}")
         r = r0.clone(memory_format=torch.contiguous_format)
+        check_finite(r, "start residual r0")
     z = apply_m(r)
     p = z.clone()
     rz = _bdot(r, z)
