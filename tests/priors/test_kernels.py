@@ -275,3 +275,33 @@ def test_replayed_bregman_update_does_not_depend_on_the_thread_count(monkeypatch
     finally:
         torch.set_num_threads(before)
     assert torch.equal(runs[0], runs[1]) and torch.equal(runs[0], runs[2])
+
+
+def test_affinities_below_the_floor_are_exactly_zero_on_both_paths(torch_ops):
+    """Weights under e^MIN_EXPONENT are 0 (their squares would be subnormal), the rest exp."""
+    from torchiid.priors.reflectance_terms import (
+        MIN_EXPONENT,
+        merged_stencil_affinity,
+        pair_affinity,
+        stencil_affinity,
+    )
+
+    t = 0.05
+    # one feature along x: the pair (x, x + 1) has exponent -(Δf)² / 2t² from -20.25 to -41.25
+    expo = -20.25 - 1.5 * torch.arange(15, dtype=torch.float64)
+    steps = (-expo * 2 * t * t).sqrt()
+    f = torch.cat([torch.zeros(1), steps.cumsum(0)]).view(1, 1, 1, 16).expand(1, 1, 3, 16)
+    st = Stencil(3, 16, [(0, 1)])
+    want = torch.where(expo >= MIN_EXPONENT, expo.exp(), torch.zeros_like(expo))
+    sem = torch.ones(1, 1, 3, 16)
+    colour = f.expand(1, 3, 3, 16) / 3**0.5  # same squared distance over 3 channels
+    for fast in (True, False):
+        run = (lambda fn: fn()) if fast else torch_ops
+        got = run(lambda: stencil_affinity(f.contiguous(), st, t))[0, 0, 1, :15]
+        merged = run(lambda: merged_stencil_affinity(colour, sem, st, t, 1.0, 1.0))[0, 0, 1, :15]
+        for v in (got, merged):
+            torch.testing.assert_close(v.double(), want, rtol=2e-4, atol=0)
+            assert bool((v[expo < MIN_EXPONENT] == 0).all()) and bool((v[expo > -29] > 0).all())
+    i = torch.arange(15).view(1, 15)
+    pair = pair_affinity(f.contiguous(), 16 + i, 16 + i + 1, t)[0]
+    torch.testing.assert_close(pair.double(), want, rtol=2e-4, atol=0)

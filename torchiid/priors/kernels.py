@@ -35,6 +35,7 @@ the machine code on disk for every later process).
 from __future__ import annotations
 
 import logging
+import math
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -308,13 +309,14 @@ def stencil_affinity(
     a_m: float = 0.0,
     mask: torch.Tensor | None = None,
     out: torch.Tensor | None = None,
+    min_exponent: float = -math.inf,
 ) -> torch.Tensor:
     """``(a_l + a_m · s_k(i)) · exp(scale · ‖f_i − f_{i + o_k}‖²)`` for every stencil pair.
 
     Without ``semantic`` the factor is 1. Pairs leaving the image, or touching a pixel outside
-    ``mask``, get 0. One pass over the offsets, the output written once (no zero fill first),
-    into ``out`` when given (``(B, K, H, W)``, the features' dtype; a non-contiguous one
-    receives a copy).
+    ``mask``, or whose exponent ``scale · ‖f_i − f_j‖²`` is below ``min_exponent``, get 0. One
+    pass over the offsets, the output written once (no zero fill first), into ``out`` when
+    given (``(B, K, H, W)``, the features' dtype; a non-contiguous one receives a copy).
 
     Shape:
         features ``(B, D, H, W)``, semantic ``(B, K, H, W)``, mask ``(B, 1, H, W)`` bool ->
@@ -344,6 +346,7 @@ def stencil_affinity(
         np_dt(scale),
         np_dt(a_l),
         np_dt(a_m),
+        np_dt(min_exponent),
         out.numpy(),
     )
     _run(kernel.affinity, args, b * h, b * h * w * len(offsets) * (d + 8))

@@ -333,9 +333,11 @@ def _add_halos(rhs, halo, block):  # pragma: no cover - compiled
 
 
 def _affinity(
-    feat, sem, mask, dys, dxs, scale, a_l, a_m, out, r0, r1
+    feat, sem, mask, dys, dxs, scale, a_l, a_m, floor, out, r0, r1
 ):  # pragma: no cover - compiled
     """``out_k(i) = (a_l + a_m · sem_k(i)) · exp(scale · ‖f_i − f_j‖²)``, ``j = i + o_k``.
+
+    0 where the exponent is below ``floor`` (see ``reflectance_terms.MIN_EXPONENT``).
 
     ``sem`` of shape ``(0, 0, 0, 0)`` stands for ``a_l = 1, a_m = 0``; ``mask`` ``(B, 1, H, W)``
     (or ``(0, 0, 0, 0)`` for none) zeroes the pairs touching a pixel outside it. Pairs leaving
@@ -370,12 +372,11 @@ def _affinity(
                 sm = sem[b, k, y, x0 : x0 + n]
                 for t in range(n):
                     v = a[t] * scale
-                    # below e^-80 the weight is 0 anyway: no denormals
-                    o[t] = (a_l + a_m * sm[t]) * np.exp(v) if v > -80 else 0
+                    o[t] = (a_l + a_m * sm[t]) * np.exp(v) if v >= floor else 0
             else:
                 for t in range(n):
                     v = a[t] * scale
-                    o[t] = np.exp(v) if v > -80 else 0
+                    o[t] = np.exp(v) if v >= floor else 0
             if use_mask:
                 _mask_row(mask, b, y, dy, dx, x0, n, o)
     return out
