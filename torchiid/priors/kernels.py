@@ -314,9 +314,12 @@ def stencil_affinity(
     """``(a_l + a_m · s_k(i)) · exp(scale · ‖f_i − f_{i + o_k}‖²)`` for every stencil pair.
 
     Without ``semantic`` the factor is 1. Pairs leaving the image, or touching a pixel outside
-    ``mask``, or whose exponent ``scale · ‖f_i − f_j‖²`` is below ``min_exponent``, get 0. One
-    pass over the offsets, the output written once (no zero fill first), into ``out`` when
-    given (``(B, K, H, W)``, the features' dtype; a non-contiguous one receives a copy).
+    ``mask``, or whose exponent ``scale · ‖f_i − f_j‖²`` is below ``min_exponent``, get 0. The
+    kernel writes the exponents (one pass over the offsets, no zero fill first), torch's
+    vectorised ``exp`` exponentiates them in place and a second kernel applies the factor:
+    about 3× faster than one ``exp`` call per pair in the kernel (measured at 512×384, stop
+    25). Into ``out`` when given (``(B, K, H, W)``, the features' dtype; a non-contiguous one
+    receives a copy).
 
     Shape:
         features ``(B, D, H, W)``, semantic ``(B, K, H, W)``, mask ``(B, 1, H, W)`` bool ->
@@ -329,27 +332,28 @@ def stencil_affinity(
     given = out
     if out is None or not out.is_contiguous():
         out = torch.empty(b, len(offsets), h, w, dtype=dt)
-    none = torch.empty(0, 0, 0, 0, dtype=dt)
-    # a mask or factor of batch 1 is broadcast, as the torch ops do (the kernel indexes both
+    # a mask or factor of batch 1 is broadcast, as the torch ops do (the kernels index both
     # per image); other shapes raise here, not inside the kernel
-    sem = none if semantic is None else semantic.expand(out.shape).contiguous()
+    sem = None if semantic is None else semantic.expand(out.shape).contiguous()
     m = torch.empty(0, 0, 0, 0, dtype=torch.bool)
     if mask is not None:
         m = mask.to(torch.bool).expand(b, 1, h, w).contiguous()
     np_dt = out.numpy().dtype.type
     args = (
         features.contiguous().numpy(),
-        sem.numpy(),
         m.numpy(),
         dys,
         dxs,
         np_dt(scale),
-        np_dt(a_l),
-        np_dt(a_m),
         np_dt(min_exponent),
         out.numpy(),
     )
-    _run(kernel.affinity, args, b * h, b * h * w * len(offsets) * (d + 8))
+    _run(kernel.affinity_exponent, args, b * h, b * h * w * len(offsets) * (d + 4))
+    out.exp_()  # torch's exp is vectorised (the kernel's would be libm's, one call per pair)
+    if sem is not None:
+        rows = b * len(offsets) * h
+        args = (out.view(rows, w).numpy(), sem.view(rows, w).numpy(), np_dt(a_l), np_dt(a_m))
+        _run(kernel.scale_by_factor, args, rows, rows * w * 2)
     if given is not None and given is not out:
         return given.copy_(out)
     return out

@@ -21,7 +21,8 @@ __all__ = [
     "gather_parallel",
     "matting_windows",
     "matting_weights",
-    "affinity",
+    "affinity_exponent",
+    "scale_by_factor",
     "bregman_replay",
     "add_halos",
 ]
@@ -332,53 +333,52 @@ def _add_halos(rhs, halo, block):  # pragma: no cover - compiled
     return rhs
 
 
-def _affinity(
-    feat, sem, mask, dys, dxs, scale, a_l, a_m, floor, out, r0, r1
-):  # pragma: no cover - compiled
-    """``out_k(i) = (a_l + a_m · sem_k(i)) · exp(scale · ‖f_i − f_j‖²)``, ``j = i + o_k``.
+def _affinity_exponent(feat, mask, dys, dxs, scale, floor, out, r0, r1):  # pragma: no cover
+    """``out_k(i) = scale · ‖f_i − f_j‖²``, ``j = i + o_k``: the exponent of the affinity.
 
-    0 where the exponent is below ``floor`` (see ``reflectance_terms.MIN_EXPONENT``).
-
-    ``sem`` of shape ``(0, 0, 0, 0)`` stands for ``a_l = 1, a_m = 0``; ``mask`` ``(B, 1, H, W)``
-    (or ``(0, 0, 0, 0)`` for none) zeroes the pairs touching a pixel outside it. Pairs leaving
-    the image get 0.
+    ``-inf`` (a weight of 0 once exponentiated) where the exponent is below ``floor`` (see
+    ``reflectance_terms.MIN_EXPONENT``), where the pair leaves the image and, with ``mask``
+    ``(B, 1, H, W)`` (``(0, 0, 0, 0)`` for none), where it touches a pixel outside. The caller
+    exponentiates (torch's ``exp`` is vectorised, numba's is not without Intel's SVML).
     """
     nb, nd, h, wd = feat.shape
     nk = dys.shape[0]
-    use_sem = sem.shape[0] > 0
     use_mask = mask.shape[0] > 0
+    ninf = -np.inf
     for r in range(r0, r1):
         b = r // h
         y = r - b * h
-        acc = np.empty(wd, dtype=feat.dtype)
         for k in range(nk):
             dy = dys[k]
             dx = dxs[k]
             orow = out[b, k, y]
-            orow[:] = 0.0
+            orow[:] = ninf
             if y + dy >= h:
                 continue
             x0, n = _span(dx, wd)
-            a = acc[:n]
-            a[:] = 0.0
+            o = orow[x0 : x0 + n]
+            o[:] = 0.0
             for d in range(nd):  # squared feature distance of each pair
                 fi = feat[b, d, y, x0 : x0 + n]
                 fj = feat[b, d, y + dy, x0 + dx : x0 + dx + n]
                 for t in range(n):
                     e = fi[t] - fj[t]
-                    a[t] += e * e
-            o = orow[x0 : x0 + n]
-            if use_sem:
-                sm = sem[b, k, y, x0 : x0 + n]
-                for t in range(n):
-                    v = a[t] * scale
-                    o[t] = (a_l + a_m * sm[t]) * np.exp(v) if v >= floor else 0
-            else:
-                for t in range(n):
-                    v = a[t] * scale
-                    o[t] = np.exp(v) if v >= floor else 0
+                    o[t] += e * e
+            for t in range(n):
+                v = o[t] * scale
+                o[t] = v if v >= floor else ninf
             if use_mask:
-                _mask_row(mask, b, y, dy, dx, x0, n, o)
+                _mask_row(mask, b, y, dy, dx, x0, n, o, ninf)
+    return out
+
+
+def _scale_by_factor(out, sem, a_l, a_m, r0, r1):  # pragma: no cover - compiled
+    """``out *= a_l + a_m · sem`` over the rows ``r0 .. r1 - 1`` of ``(B·K·H, W)`` views."""
+    for r in range(r0, r1):
+        o = out[r]
+        s = sem[r]
+        for t in range(o.shape[0]):
+            o[t] *= a_l + a_m * s[t]
     return out
 
 
@@ -390,12 +390,12 @@ def _span(dx, wd):  # pragma: no cover - compiled
 
 
 @njit(inline="always")
-def _mask_row(mask, b, y, dy, dx, x0, n, o):  # pragma: no cover - compiled
+def _mask_row(mask, b, y, dy, dx, x0, n, o, value):  # pragma: no cover - compiled
     mi = mask[b, 0, y, x0 : x0 + n]
     mj = mask[b, 0, y + dy, x0 + dx : x0 + dx + n]
     for t in range(n):
         if not (mi[t] and mj[t]):
-            o[t] = 0.0
+            o[t] = value
 
 
 _jit = njit(nogil=True, cache=True, fastmath=True, boundscheck=False)
@@ -408,4 +408,7 @@ bregman_replay = njit(nogil=True, cache=True, boundscheck=False)(_bregman_replay
 add_halos = njit(nogil=True, cache=True, boundscheck=False)(_add_halos)
 # the window statistics keep IEEE semantics, as the torch ops that they replace
 matting_windows = njit(nogil=True, cache=True, boundscheck=False)(_matting_windows)
-affinity = _jit(_affinity)
+# IEEE semantics: fast-math would let LLVM assume that no value is infinite, and the exponent
+# marks the pairs without weight by -inf
+affinity_exponent = njit(nogil=True, cache=True, boundscheck=False)(_affinity_exponent)
+scale_by_factor = njit(nogil=True, cache=True, boundscheck=False)(_scale_by_factor)
