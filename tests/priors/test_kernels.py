@@ -242,7 +242,7 @@ def test_inputs_the_kernels_do_not_handle_keep_the_torch_results(torch_ops):
 
 
 @pytest.mark.parametrize("history", [0, 1, 2])
-def test_replayed_bregman_update_matches_the_stored_state_update(history, monkeypatch):
+def test_replayed_bregman_update_matches_the_stored_state_update(history, monkeypatch, torch_ops):
     """The kernel's right-hand side equals the torch path's update from the stored state
     after the same earlier updates: batch of 2, 11-row-deep pairs, blocks of 8 rows (block
     boundaries inside an image and across the two images, halos of 5 rows)."""
@@ -252,11 +252,61 @@ def test_replayed_bregman_update_matches_the_stored_state_update(history, monkey
     w = torch.rand(2, st.num_offsets, 27, 21, generator=g) * st.valid
     zs = [torch.rand(2, 3, 27, 21, generator=g) for _ in range(history + 1)]
     term = StencilL1Term(st, w, zero_invalid=False)
-    b = None
-    for z in zs:
-        b, rhs, _ = term.bregman_step(z, b, 0.05, with_l1=False)
+
+    def reference():
+        b = None
+        for z in zs:
+            b, rhs, _ = term.bregman_step(z, b, 0.05, with_l1=False)
+        return rhs
+
+    rhs = torch_ops(reference)
     fast = kernels.bregman_replay(zs[:-1], zs[-1], w, st.offsets, 0.05)
     torch.testing.assert_close(fast, rhs, rtol=1e-5, atol=1e-5)
+
+
+def test_stored_state_bregman_updates_match_the_torch_path(monkeypatch, torch_ops):
+    """The compiled update of a stored state (fresh, read and written, read only on the
+    final step, warm from a given state, and a replayed state materialised) gives the torch
+    path's state, bitwise, and its right-hand side."""
+    monkeypatch.setattr(kernels, "REPLAY_BLOCK_ROWS", 8)
+    g = torch.Generator().manual_seed(11)
+    st = Stencil.square(27, 21, 11)
+    w = torch.rand(2, st.num_offsets, 27, 21, generator=g) * st.valid
+    zs = [torch.rand(2, 3, 27, 21, generator=g) * 0.3 for _ in range(4)]
+    valid = st.valid.view(1, 1, st.num_offsets, 27, 21).expand(2, 3, -1, -1, -1)
+
+    def run(keep_state, warm_from=None):
+        state = None if warm_from is None else warm_from.clone()
+        term = StencilL1Term(st, w, zero_invalid=False, keep_state=keep_state, replay=False,
+                             state=state, warm=warm_from is not None)  # fmt: skip
+        b, out = term.initial_state, []
+        for n, z in enumerate(zs):
+            final = n == len(zs) - 1
+            b, rhs, _ = term.bregman_step(z, b, 0.02, with_l1=False, final=final)
+            out.append((None if b is None else b.clone(), rhs, term.state_written))
+        return out
+
+    for keep in (True, False):
+        warm = torch.rand(2, 3, st.num_offsets, 27, 21, generator=g) * 0.04 - 0.02
+        for start in (None, warm):
+            fast = run(keep, start)
+            ref = torch_ops(lambda k=keep, s=start: run(k, s))
+            for (bf, rf, wf), (br, rr, wr) in zip(fast, ref, strict=True):
+                assert wf == wr
+                torch.testing.assert_close(rf, rr, rtol=1e-5, atol=1e-5)
+                if br is not None:  # entries of pairs leaving the image are unspecified
+                    assert torch.equal(bf[valid], br[valid])
+            # the last update of a solve that keeps no state leaves it as it was
+            assert fast[-1][2] is keep
+    # a replayed state (default solves) materialised by one compiled call equals the torch one
+    term = StencilL1Term(st, w, zero_invalid=False, keep_state=False)
+    b = None
+    for z in zs[:2]:
+        b, _, _ = term.bregman_step(z, b, 0.02, with_l1=False)
+    assert type(b).__name__ == "_Replay"
+    fast = term._materialise(b, compiled=True)
+    ref = torch_ops(lambda: term._materialise(b, compiled=False))
+    assert torch.equal(fast[valid], ref[valid])
 
 
 def test_replayed_bregman_update_does_not_depend_on_the_thread_count(monkeypatch):

@@ -43,6 +43,8 @@ from functools import cache
 
 import torch
 
+from torchiid.core.exceptions import ShapeError
+
 __all__ = [
     "usable",
     "stencil_product",
@@ -50,6 +52,7 @@ __all__ = [
     "stencil_affinity",
     "matting_window_terms",
     "bregman_replay",
+    "bregman_update",
     "matting_weights",
 ]
 
@@ -200,21 +203,54 @@ def bregman_replay(
     ``Σ_k (W M)ᵀ (d_k − b_k)`` at ``z`` for a solve that started from the zero state and made
     its earlier updates at the ``z`` in ``history`` (oldest first): each pair's Bregman
     variable is recomputed from them instead of read from a stored ``(B, C, K, H, W)``
-    state (see ``stencil_kernels._bregman_replay``). The rows are cut into blocks of
-    :data:`REPLAY_BLOCK_ROWS`, run in runs of whole blocks on torch's thread count; each
-    block's contributions to the rows after it are added once all blocks are done, in block
-    order, so the result does not depend on the number of threads.
+    state (:func:`bregman_update` with a history and no state).
 
     Shape:
         history items and z ``(B, C, H, W)``, weights ``(B, K, H, W)`` -> ``(B, C, H, W)``.
+    """
+    return bregman_update(z, weights, offsets, lam, history=history)
+
+
+def bregman_update(
+    z: torch.Tensor,
+    weights: torch.Tensor,
+    offsets: list[tuple[int, int]],
+    lam: float,
+    *,
+    state: torch.Tensor | None = None,
+    read: bool = False,
+    write: bool = False,
+    history: list[torch.Tensor] | tuple[()] = (),
+) -> torch.Tensor:
+    """A ``StencilL1Term`` Bregman update at ``z``: its right-hand side, ``state`` updated.
+
+    Every pair's Bregman variable starts from ``state`` (``read``) or from 0, is replayed
+    through the updates at the ``z`` in ``history`` (oldest first), is updated at ``z`` and
+    written back to ``state`` (``write``); returns ``Σ_k (W M)ᵀ (d_k − b_k)`` (see
+    ``stencil_kernels._bregman_update``). One pass over the state where the torch path makes
+    about ten per offset. The rows are cut into blocks of :data:`REPLAY_BLOCK_ROWS`, run in
+    runs of whole blocks on torch's thread count; each block's contributions to the rows
+    after it are added once all blocks are done, in block order, so the result does not
+    depend on the number of threads.
+
+    Shape:
+        z and history items ``(B, C, H, W)``, weights ``(B, K, H, W)``, state ``(B, C, K, H,
+        W)`` contiguous -> ``(B, C, H, W)``.
     """
     import numpy as np
 
     _, kernel = _numba()
     dys, dxs = _offsets(tuple(offsets))
     b, c, h, w = z.shape
+    if (read or write) and (
+        state is None or state.shape != (b, c, len(offsets), h, w) or not state.is_contiguous()
+    ):
+        raise ShapeError(
+            f"state must be a contiguous {(b, c, len(offsets), h, w)} tensor to read or write"
+        )
     zs = torch.stack([*history, z]).contiguous()
     rhs = torch.empty(b, c, h, w, dtype=z.dtype)
+    st = state if state is not None else torch.empty(0, 0, 0, 0, 0, dtype=z.dtype)
     depth = max(1, int(dys.max()))
     rows = b * h
     block = REPLAY_BLOCK_ROWS
@@ -226,22 +262,34 @@ def bregman_replay(
     cuts = [blocks * i // n for i in range(n + 1)]  # each thread: a run of whole blocks
     halo = np.empty((blocks, depth, c, w), dtype=rhs.numpy().dtype)
     lam_t = rhs.numpy().dtype.type(lam)
-    args = (zs.numpy(), weights.contiguous().numpy(), dys, dxs, lam_t, rhs.numpy(), halo, block)
+    args = (
+        zs.numpy(),
+        weights.contiguous().numpy(),
+        dys,
+        dxs,
+        lam_t,
+        st.numpy(),
+        bool(read),
+        bool(write),
+        rhs.numpy(),
+        halo,
+        block,
+    )
     if n == 1:
-        kernel.bregman_replay(*args, 0, blocks)
+        kernel.bregman_update(*args, 0, blocks)
     else:
         pool = _executor(n - 1)
         futures = [
-            pool.submit(kernel.bregman_replay, *args, cuts[i], cuts[i + 1]) for i in range(1, n)
+            pool.submit(kernel.bregman_update, *args, cuts[i], cuts[i + 1]) for i in range(1, n)
         ]
-        kernel.bregman_replay(*args, cuts[0], cuts[1])
+        kernel.bregman_update(*args, cuts[0], cuts[1])
         for f in futures:
             f.result()
     kernel.add_halos(rhs.numpy(), halo, block)
     return rhs
 
 
-#: rows per block of :func:`bregman_replay` (fixed, so that the result does not depend on
+#: rows per block of :func:`bregman_update` (fixed, so that the result does not depend on
 #: the thread count)
 REPLAY_BLOCK_ROWS = 32
 

@@ -23,7 +23,7 @@ __all__ = [
     "matting_weights",
     "affinity_exponent",
     "scale_by_factor",
-    "bregman_replay",
+    "bregman_update",
     "add_halos",
 ]
 
@@ -245,16 +245,19 @@ def _matting_windows(img, mask, eps, qp, r0, r1):  # pragma: no cover - compiled
     return qp
 
 
-def _bregman_replay(zs, w, dys, dxs, lam, rhs, halo, block, k0, k1):  # pragma: no cover
-    """A Split-Bregman update of ``StencilL1Term`` from the zero state, replaying its history.
+def _bregman_update(
+    zs, w, dys, dxs, lam, state, read, write, rhs, halo, block, k0, k1
+):  # pragma: no cover - compiled
+    """A Split-Bregman update of ``StencilL1Term``: the new state and the right-hand side.
 
-    ``zs`` ``(m + 1, B, C, H, W)``: the ``z`` of the ``m`` earlier updates of this solve, then
-    the current one. For every pair ``(i, j = i + o_k)`` and channel the Bregman variable is
-    rebuilt as Split-Bregman left it, ``b ← clamp(b + w (z_i − z_j), −λ, λ)`` over the
-    history from ``b = 0`` (the torch path's operations in its order, so it is the value that
-    path stores), then ``u = b + w (z_i − z_j)``, ``b' = clamp(u, −λ, λ)``, and ``w (u − 2b')``
-    (``w (d − b')``) is added to ``rhs_i`` and subtracted from ``rhs_j``. No state is read or
-    written: the ``(B, C, K, H, W)`` variable is never stored.
+    ``zs`` ``(m + 1, B, C, H, W)``: the ``z`` of ``m`` earlier updates to replay, then the
+    current one. For every pair ``(i, j = i + o_k)`` and channel the Bregman variable ``b``
+    starts from ``state`` ``(B, C, K, H, W)`` (``read``) or from 0, goes through the replayed
+    updates ``b ← clamp(b + w (z_i − z_j), −λ, λ)`` (none when ``m = 0``), then ``u = b + w (z_i
+    − z_j)``, ``b' = clamp(u, −λ, λ)`` is written back to ``state`` (``write``), and ``w (u −
+    2b')`` (``w (d − b')``) is added to ``rhs_i`` and subtracted from ``rhs_j``. These are the
+    torch path's operations in its order, so ``b'`` is the value that path stores. With
+    ``write=False`` and a history no ``(B, C, K, H, W)`` variable is read or written at all.
 
     The ``B·H`` rows are cut into blocks of ``block`` rows; this call does blocks ``k0 .. k1 −
     1``. Each block zeroes and writes its own rows; its contributions to the rows after it go
@@ -267,7 +270,7 @@ def _bregman_replay(zs, w, dys, dxs, lam, rhs, halo, block, k0, k1):  # pragma: 
     nb, nc, h, wd = zs.shape[1], zs.shape[2], zs.shape[3], zs.shape[4]
     rows = nb * h
     nk = dys.shape[0]
-    bbuf = np.empty(wd, dtype=zs.dtype)  # a row of replayed Bregman variables
+    bbuf = np.empty(wd, dtype=zs.dtype)  # a row of Bregman variables
     for blk in range(k0, k1):
         r0 = blk * block
         r1 = min(rows, r0 + block)
@@ -295,7 +298,10 @@ def _bregman_replay(zs, w, dys, dxs, lam, rhs, halo, block, k0, k1):  # pragma: 
                     else:
                         oj = halo[blk, rj - r1, c, x0 + dx : x0 + dx + n]
                     bb = bbuf[:n]
-                    bb[:] = 0.0
+                    if read:
+                        bb[:] = state[b, c, k, y, x0 : x0 + n]
+                    else:
+                        bb[:] = 0.0
                     for s in range(m):
                         zi = zs[s, b, c, y, x0 : x0 + n]
                         zj = zs[s, b, c, y + dy, x0 + dx : x0 + dx + n]
@@ -304,11 +310,20 @@ def _bregman_replay(zs, w, dys, dxs, lam, rhs, halo, block, k0, k1):  # pragma: 
                             bb[t] = min(max(u, -lam), lam)
                     zi = zs[m, b, c, y, x0 : x0 + n]
                     zj = zs[m, b, c, y + dy, x0 + dx : x0 + dx + n]
-                    for t in range(n):  # bb becomes w (d − b'), the pair's contribution
-                        wt = wr[t]
-                        u = (zi[t] - zj[t]) * wt + bb[t]
-                        bn = min(max(u, -lam), lam)
-                        bb[t] = (u - (bn + bn)) * wt  # bn + bn is exact: one rounding
+                    if write:
+                        sr = state[b, c, k, y, x0 : x0 + n]
+                        for t in range(n):  # bb becomes w (d − b'), the pair's contribution
+                            wt = wr[t]
+                            u = (zi[t] - zj[t]) * wt + bb[t]
+                            bn = min(max(u, -lam), lam)
+                            sr[t] = bn
+                            bb[t] = (u - (bn + bn)) * wt  # bn + bn is exact: one rounding
+                    else:
+                        for t in range(n):
+                            wt = wr[t]
+                            u = (zi[t] - zj[t]) * wt + bb[t]
+                            bn = min(max(u, -lam), lam)
+                            bb[t] = (u - (bn + bn)) * wt
                     # separate loops: oi and oj may overlap (dy = 0), each still vectorises
                     for t in range(n):
                         oi[t] += bb[t]
@@ -318,7 +333,7 @@ def _bregman_replay(zs, w, dys, dxs, lam, rhs, halo, block, k0, k1):  # pragma: 
 
 
 def _add_halos(rhs, halo, block):  # pragma: no cover - compiled
-    """Add each block's ``halo`` (:func:`_bregman_replay`) to the rows after it, in order."""
+    """Add each block's ``halo`` (:func:`_bregman_update`) to the rows after it, in order."""
     nb, _, h, _ = rhs.shape
     rows = nb * h
     for blk in range(halo.shape[0]):
@@ -404,7 +419,7 @@ gather = njit(nogil=True, cache=True, boundscheck=False)(_gather)
 gather_parallel = njit(parallel=True, nogil=True, cache=True, boundscheck=False)(_gather_all)
 matting_weights = _jit(_matting_weights)
 # IEEE semantics: the replayed Bregman variable is the one the torch path would have stored
-bregman_replay = njit(nogil=True, cache=True, boundscheck=False)(_bregman_replay)
+bregman_update = njit(nogil=True, cache=True, boundscheck=False)(_bregman_update)
 add_halos = njit(nogil=True, cache=True, boundscheck=False)(_add_halos)
 # the window statistics keep IEEE semantics, as the torch ops that they replace
 matting_windows = njit(nogil=True, cache=True, boundscheck=False)(_matting_windows)
