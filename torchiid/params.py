@@ -576,7 +576,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # does not depend on it): 2.5 gets there in ~80 iterations where the paper's 40 needs ~350.
     # Each alternation's Split-Bregman starts from the previous one's Bregman variable (same
     # minimiser, 10-45% fewer iterations in alternations 2-5). The caps are safety caps (a
-    # ConvergenceWarning if hit). 17-40 s per 512 px photo on 2 CPU cores.
+    # ConvergenceWarning if hit). 13-30 s per 512 px photo on 2 CPU cores (stop 25).
     # Re-tuned for converged solves (MIT, README "Solving to tolerance"): tau 1.1 (each
     # alternation reaches its minimum, so the weight drift compounds; 0.0234 -> 0.0229, 7 of 10
     # objects better) and the L1 weights gamma halved (a minimiser flattens fully where early
