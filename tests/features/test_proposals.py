@@ -210,3 +210,19 @@ def test_segmentations_in_threads_give_the_one_thread_proposals():
     assert torch.equal(one.atom_labels, two.atom_labels)
     assert torch.equal(one.membership, two.membership)
     assert torch.equal(one.boxes, two.boxes) and torch.equal(one.strategy, two.strategy)
+
+
+@pytest.mark.parametrize("space", ["lab", "hsv"])
+def test_compiled_atom_histograms_count_as_the_numpy_path(astronaut, space, monkeypatch):
+    from torchiid.features import proposal_features as pf
+
+    if pf._kernels() is None:
+        pytest.skip("needs numba")
+    x = pf.to_colour_space(astronaut, space)
+    atoms = np.random.default_rng(1).integers(0, 40, x.shape[0] * x.shape[1])
+    fast = atom_histograms(x, atoms, 40)
+    with monkeypatch.context() as m:
+        m.setattr(pf, "_kernels", lambda: None)
+        ref = atom_histograms(x, atoms, 40)
+    assert fast.sum() == ref.sum() == x.shape[0] * x.shape[1] * 27
+    np.testing.assert_array_equal(fast, ref)

@@ -9,6 +9,9 @@ its atoms.
 
 from __future__ import annotations
 
+import os
+from functools import cache
+
 import cv2
 import numpy as np
 
@@ -30,6 +33,18 @@ TEXTURE_BINS = 10
 ORIENTATIONS = 8
 #: the colour part of a histogram row (its first bins; the texture bins follow)
 NUM_COLOUR_HIST_BINS = 3 * COLOUR_BINS
+
+
+@cache
+def _kernels():
+    """The compiled histogram kernels, or ``None`` (no numba, or ``TORCHIID_KERNELS=torch``)."""
+    if os.environ.get("TORCHIID_KERNELS", "").lower() == "torch":
+        return None
+    try:
+        from torchiid.features import histogram_kernels
+    except Exception:  # pragma: no cover - no numba, or no writable directory for its cache
+        return None
+    return histogram_kernels
 
 
 def to_colour_space(srgb: np.ndarray, space: str) -> np.ndarray:
@@ -68,11 +83,27 @@ def atom_histograms(x: np.ndarray, atoms: np.ndarray, n_atoms: int) -> np.ndarra
     orientation ``o * 45`` degrees, the Gaussian derivative (sigma = 1) along that direction,
     half-wave rectified, scaled by the channel's largest response and cut into 10 bins (an
     orientation and its opposite share an axis: where one responds, the other is in bin 0).
-    Computed one channel at a time, so memory stays ``O(H W)``.
+    Computed one channel at a time, so memory stays ``O(H W)``; with numba, in one compiled
+    pass per channel (:mod:`torchiid.features.histogram_kernels`, the same counts).
     """
     xf = np.ascontiguousarray(x, dtype=np.float32)
     n_bins = 3 * COLOUR_BINS + 3 * ORIENTATIONS * TEXTURE_BINS
     hist = np.zeros((n_atoms, n_bins))
+    half = ORIENTATIONS // 2
+    theta = np.arange(half) * (np.pi / half)
+    kernel = _kernels()
+    if kernel is not None:  # one pass per channel, the same counts (see histogram_kernels)
+        atoms_c = np.ascontiguousarray(atoms, dtype=np.int64)
+        kernel.colour_counts(xf, atoms_c, COLOUR_BINS, hist)
+        cos32 = np.array([np.float32(np.cos(t)) for t in theta], dtype=np.float32)
+        sin32 = np.array([np.float32(np.sin(t)) for t in theta], dtype=np.float32)
+        for c in range(3):
+            gx, gy = gaussian_derivatives(np.ascontiguousarray(xf[..., c]))
+            biggest = float(kernel.largest_response(gx, gy, cos32, sin32))
+            scale = np.float32(TEXTURE_BINS / max(biggest, 1e-12))
+            base = 3 * COLOUR_BINS + c * ORIENTATIONS * TEXTURE_BINS
+            kernel.texture_counts(gx, gy, cos32, sin32, scale, atoms_c, base, TEXTURE_BINS, hist)
+        return hist
 
     def add(base: int, q: np.ndarray, nb: int) -> None:
         counts = np.bincount(atoms * nb + q.reshape(-1), minlength=n_atoms * nb)
@@ -81,8 +112,6 @@ def atom_histograms(x: np.ndarray, atoms: np.ndarray, n_atoms: int) -> np.ndarra
     for c in range(3):
         q = np.minimum((xf[..., c] * COLOUR_BINS).astype(np.int64), COLOUR_BINS - 1)
         add(c * COLOUR_BINS, q, COLOUR_BINS)
-    half = ORIENTATIONS // 2
-    theta = np.arange(half) * (np.pi / half)
     for c in range(3):
         gx, gy = gaussian_derivatives(np.ascontiguousarray(xf[..., c]))
         d = [np.float32(np.cos(t)) * gx + np.float32(np.sin(t)) * gy for t in theta]
