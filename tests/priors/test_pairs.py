@@ -97,6 +97,15 @@ def test_constraint_quadratic_matches_dense():
     a = ref.T @ torch.diag(wts) @ ref
     x = torch.randn(2, 1, h, w, dtype=torch.float64)
     torch.testing.assert_close(q.matvec(x).reshape(-1), a @ x.reshape(-1))
+    # accumulated into a given tensor (how SumQuadratic adds it to a stencil's product)
+    y0 = torch.randn(2, 1, h, w, dtype=torch.float64)
+    got = q.add_matvec(x, y0.clone(), 0.7)
+    torch.testing.assert_close(got.reshape(-1), y0.reshape(-1) + 0.7 * (a @ x.reshape(-1)))
+    st = Stencil.square(h, w, 3)
+    sq = StencilQuadratic(st, torch.rand(2, st.num_offsets, h, w, dtype=torch.float64))
+    total = SumQuadratic([(1.5, sq), (0.7, q)])
+    dense = 1.5 * sq.to_sparse().to_dense() + 0.7 * a
+    torch.testing.assert_close(total.matvec(x).reshape(-1), dense @ x.reshape(-1))
     torch.testing.assert_close(q.diagonal().reshape(-1), a.diagonal())
     torch.testing.assert_close(q.rhs().reshape(-1), ref.T @ (wts * c))
     torch.testing.assert_close(q.to_sparse().to_dense(), a)
