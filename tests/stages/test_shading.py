@@ -362,3 +362,33 @@ def test_edge_marks_take_a_mask_of_batch_one():
     for i in range(2):
         one = edge_confidence(img[i : i + 1], 0.015, mask=mask > 0, t_h=0.5)
         assert torch.equal(both[i : i + 1], one)
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_coarse_levels_reuse_the_lle_neighbourhood_and_change_nothing(masked, monkeypatch):
+    """S_c's neighbours and weights depend only on the features and the valid patches: the
+    coarse-to-fine solve computes them once for its three levels (without a mask) and its
+    answer is the one it gives when every level computes its own."""
+    import torchiid.priors.lle as lle
+
+    syn, problem = _inputs(64, 64, seed=4, dtype=torch.float32)
+    if masked:
+        mask = torch.zeros(1, 1, 64, 64, dtype=torch.bool)
+        mask[..., 4:60, 6:58] = True
+        problem = problem.replace(mask=mask)
+    opts = ShadingOptions(tol=1e-4, max_iter=3000, levels=3)
+    calls = []
+    real = lle.select_neighbours
+    monkeypatch.setattr(lle, "select_neighbours", lambda *a, **k: calls.append(1) or real(*a, **k))
+    cache = ShadingSystemCache()
+    shared = solve_shading(problem, W, opts, cache=cache)
+    if not masked:
+        assert len(calls) == 1 and cache.neighbourhood.hits == 2
+    assert 1 <= len(calls) <= 3
+    # the same solve with every level computing its own neighbourhood
+    monkeypatch.setattr(lle.LLENeighbourhood, "matches", lambda self, key, valid: False)
+    calls.clear()
+    own = solve_shading(problem, W, opts)
+    assert len(calls) == 3
+    assert torch.equal(shared.log_shading, own.log_shading)
+    assert shared.diagnostics.iterations == own.diagnostics.iterations

@@ -14,14 +14,24 @@ p1 = rgb + knn, p2 = rgb + random, p3 = cnn + random, p4 = cnn + knn (the paper'
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
+from torchiid.core.cache import InputKey, input_key
 from torchiid.core.check import check_finite, check_shape
 from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.priors.pairs import constraint_matrix
 from torchiid.priors.quadratic import ConstraintQuadratic
 
-__all__ = ["select_neighbours", "lle_weights", "patch_rgb_features", "lle_term", "STRATEGIES"]
+__all__ = [
+    "select_neighbours",
+    "lle_weights",
+    "patch_rgb_features",
+    "lle_term",
+    "LLENeighbourhood",
+    "STRATEGIES",
+]
 
 #: Paper Table 2: strategy -> (feature type, neighbour choice).
 STRATEGIES = {
@@ -157,6 +167,38 @@ def patch_rgb_features(
     return (s / area).transpose(1, 2).to(image.dtype)
 
 
+@dataclass
+class LLENeighbourhood:
+    """The last neighbours and LLE weights :func:`lle_term` computed, for reuse.
+
+    An entry is reused when the features are the same tensor (unmodified), the options are
+    the same and the same patches are valid (both all, or equal ``valid`` masks); the
+    result is then what the call would have computed.
+
+    Attributes:
+        hits: how many computations were skipped.
+    """
+
+    key: InputKey | None = None
+    valid: torch.Tensor | None = None
+    index: torch.Tensor | None = None
+    ok: torch.Tensor | None = None
+    weights: torch.Tensor | None = None
+    hits: int = 0
+
+    def matches(self, key: InputKey, valid: torch.Tensor | None) -> bool:
+        """Whether the stored entry is the one for ``key`` and ``valid``."""
+        if self.key is None or not self.key == key:
+            return False
+        if valid is None or self.valid is None:
+            return valid is None and self.valid is None
+        return valid.shape == self.valid.shape and bool(torch.equal(valid, self.valid))
+
+    def store(self, key, valid, index, ok, weights) -> None:  # noqa: ANN001
+        """Keep this computation's result."""
+        self.key, self.valid, self.index, self.ok, self.weights = key, valid, index, ok, weights
+
+
 def lle_term(
     centers: torch.Tensor,
     features: torch.Tensor,
@@ -167,6 +209,7 @@ def lle_term(
     neighbours: str = "knn",
     mask: torch.Tensor | None = None,
     seed: int = 0,
+    reuse: LLENeighbourhood | None = None,
 ) -> ConstraintQuadratic:
     """The consistency term ``S_c`` (Eq. 2): one row ``s_b - sum_a w_ab s_a`` per patch centre.
 
@@ -181,6 +224,10 @@ def lle_term(
         mask: optional ``(B, 1, H, W)`` bool; patches centred outside it are neither
             constrained nor used as neighbours.
         seed: seed of the random strategy.
+        reuse: an :class:`LLENeighbourhood` that keeps the neighbours and weights between
+            calls: they depend on the features, the options and which patches are valid, not
+            on the image size, so the coarse-to-fine shading solve computes them once for its
+            levels.
 
     Returns:
         :class:`~torchiid.priors.quadratic.ConstraintQuadratic` on ``(B, 1, H, W)``, in the
@@ -206,8 +253,15 @@ def lle_term(
     if mask is not None:
         check_shape(mask, (b, 1, height, width), "mask")
         valid = torch.gather(mask.reshape(b, -1), 1, pix)
-    idx, ok = select_neighbours(features, k, neighbours, valid, seed)
-    w = lle_weights(features, idx, ok, reg)
+    key = input_key(features, k, reg, neighbours, seed)
+    if reuse is not None and reuse.matches(key, valid):
+        idx, ok, w = reuse.index, reuse.ok, reuse.weights
+        reuse.hits += 1
+    else:
+        idx, ok = select_neighbours(features, k, neighbours, valid, seed)
+        w = lle_weights(features, idx, ok, reg)
+        if reuse is not None:
+            reuse.store(key, valid, idx, ok, w)
     row_ok = ok.any(-1) if valid is None else ok.any(-1) & valid
     kk = idx.shape[-1]
     nb_pix = torch.gather(pix, 1, idx.reshape(b, -1)).view(b, p, kk)

@@ -372,16 +372,30 @@ def _affinity_exponent(feat, mask, dys, dxs, scale, floor, out, r0, r1):  # prag
                 continue
             x0, n = _span(dx, wd)
             o = orow[x0 : x0 + n]
-            o[:] = 0.0
-            for d in range(nd):  # squared feature distance of each pair
-                fi = feat[b, d, y, x0 : x0 + n]
-                fj = feat[b, d, y + dy, x0 + dx : x0 + dx + n]
+            if nd == 3:  # colour features: one pass, the same sums in the same order
+                fi0 = feat[b, 0, y, x0 : x0 + n]
+                fj0 = feat[b, 0, y + dy, x0 + dx : x0 + dx + n]
+                fi1 = feat[b, 1, y, x0 : x0 + n]
+                fj1 = feat[b, 1, y + dy, x0 + dx : x0 + dx + n]
+                fi2 = feat[b, 2, y, x0 : x0 + n]
+                fj2 = feat[b, 2, y + dy, x0 + dx : x0 + dx + n]
                 for t in range(n):
-                    e = fi[t] - fj[t]
-                    o[t] += e * e
-            for t in range(n):
-                v = o[t] * scale
-                o[t] = v if v >= floor else ninf
+                    e0 = fi0[t] - fj0[t]
+                    e1 = fi1[t] - fj1[t]
+                    e2 = fi2[t] - fj2[t]
+                    v = (e0 * e0 + e1 * e1 + e2 * e2) * scale
+                    o[t] = v if v >= floor else ninf
+            else:
+                o[:] = 0.0
+                for d in range(nd):  # squared feature distance of each pair
+                    fi = feat[b, d, y, x0 : x0 + n]
+                    fj = feat[b, d, y + dy, x0 + dx : x0 + dx + n]
+                    for t in range(n):
+                        e = fi[t] - fj[t]
+                        o[t] += e * e
+                for t in range(n):
+                    v = o[t] * scale
+                    o[t] = v if v >= floor else ninf
             if use_mask:
                 _mask_row(mask, b, y, dy, dx, x0, n, o, ninf)
     return out

@@ -47,7 +47,7 @@ import torch.nn.functional as F
 from torchiid.core.cache import InputKey, input_key
 from torchiid.core.check import check_finite, check_image, check_shape
 from torchiid.core.exceptions import ConvergenceWarning, ParameterError, ShapeError
-from torchiid.priors.lle import lle_term
+from torchiid.priors.lle import LLENeighbourhood, lle_term
 from torchiid.priors.matting import matting_stencil, smooth_base
 from torchiid.priors.quadratic import QuadraticTerm, SumQuadratic
 from torchiid.priors.shading_terms import (
@@ -156,12 +156,16 @@ class ShadingSystemCache:
         preconditioner: a multigrid hierarchy built for an earlier alternation, reused as
             long as it keeps its iteration count (see ``ShadingOptions.preconditioner``).
         fresh_iterations: the PCG iterations it needed on the system it was built for.
+        neighbourhood: ``S_c``'s neighbours and LLE weights, shared with the coarser levels
+            of a coarse-to-fine solve (which build ``S_c`` on their own grids from the same
+            features).
     """
 
     terms: dict[str, tuple[InputKey, QuadraticTerm]] = field(default_factory=dict)
     hits: int = 0
     preconditioner: object | None = None
     fresh_iterations: int = 0
+    neighbourhood: LLENeighbourhood = field(default_factory=LLENeighbourhood)
 
 
 def _coarse_problem(problem: ShadingProblem, base_sigma: float) -> ShadingProblem:
@@ -405,6 +409,7 @@ def build_shading_system(
                 neighbours=o.lle_neighbours,
                 mask=mask,
                 seed=o.seed,
+                reuse=None if cache is None else cache.neighbourhood,
             ),
             input_key(
                 centers, feats, h, w, o.lle_k, o.lle_reg, o.lle_neighbours, mask, o.seed, dt, dev
@@ -517,6 +522,9 @@ def solve_shading(
         reflectance ``(B, 3, H, W)``.
     """
     o = options
+    # a cache for this call alone when none is given: the coarse levels share its S_c
+    # neighbourhood (everything else in it starts empty, as without one)
+    cache = ShadingSystemCache() if cache is None else cache
     built = build_shading_system(problem, weights, options, cache)
     system, times = built.total, dict(built.times)
     image, mask = problem.image.contiguous(), problem.mask
@@ -542,6 +550,7 @@ def solve_shading(
             _coarse_problem(problem, o.base_sigma),
             weights,
             o.replace(base_sigma=o.base_sigma / 2, levels=o.levels - 1, warn=False),
+            cache=ShadingSystemCache(neighbourhood=cache.neighbourhood),
         )
         x0 = F.interpolate(sub.log_shading, size=(h, w), mode="bilinear", align_corners=False)
         times["coarse"] = sum(sub.diagnostics.times.values())
