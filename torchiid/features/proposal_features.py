@@ -9,7 +9,6 @@ its atoms.
 
 from __future__ import annotations
 
-import os
 from functools import cache
 
 import cv2
@@ -37,12 +36,17 @@ NUM_COLOUR_HIST_BINS = 3 * COLOUR_BINS
 
 @cache
 def _kernels():
-    """The compiled histogram kernels, or ``None`` (no numba, or ``TORCHIID_KERNELS=torch``)."""
-    if os.environ.get("TORCHIID_KERNELS", "").lower() == "torch":
+    """The compiled histogram kernels, or ``None`` where the solvers' kernels are off too.
+
+    That is: no numba, or ``TORCHIID_KERNELS=torch`` (:func:`torchiid.priors.kernels._numba`).
+    """
+    from torchiid.priors import kernels
+
+    if kernels._numba() is None:
         return None
     try:
         from torchiid.features import histogram_kernels
-    except Exception:  # pragma: no cover - no numba, or no writable directory for its cache
+    except Exception:  # pragma: no cover - e.g. no writable directory for numba's cache
         return None
     return histogram_kernels
 
@@ -95,8 +99,7 @@ def atom_histograms(x: np.ndarray, atoms: np.ndarray, n_atoms: int) -> np.ndarra
     if kernel is not None:  # one pass per channel, the same counts (see histogram_kernels)
         atoms_c = np.ascontiguousarray(atoms, dtype=np.int64)
         kernel.colour_counts(xf, atoms_c, COLOUR_BINS, hist)
-        cos32 = np.array([np.float32(np.cos(t)) for t in theta], dtype=np.float32)
-        sin32 = np.array([np.float32(np.sin(t)) for t in theta], dtype=np.float32)
+        cos32, sin32 = np.cos(theta).astype(np.float32), np.sin(theta).astype(np.float32)
         for c in range(3):
             gx, gy = gaussian_derivatives(np.ascontiguousarray(xf[..., c]))
             biggest = float(kernel.largest_response(gx, gy, cos32, sin32))

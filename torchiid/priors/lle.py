@@ -194,7 +194,14 @@ class LLENeighbourhood:
             return valid is None and self.valid is None
         return valid.shape == self.valid.shape and bool(torch.equal(valid, self.valid))
 
-    def store(self, key, valid, index, ok, weights) -> None:  # noqa: ANN001
+    def store(
+        self,
+        key: InputKey,
+        valid: torch.Tensor | None,
+        index: torch.Tensor,
+        ok: torch.Tensor,
+        weights: torch.Tensor,
+    ) -> None:
         """Keep this computation's result."""
         self.key, self.valid, self.index, self.ok, self.weights = key, valid, index, ok, weights
 

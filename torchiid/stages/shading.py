@@ -537,7 +537,7 @@ def solve_shading(
     max_iter = o.max_iter
     fresh = False
     if o.preconditioner != "jacobi":
-        precond = cache.preconditioner if cache is not None else None
+        precond = cache.preconditioner
         if precond is None:
             t0 = time.perf_counter()
             precond = _multigrid(o.preconditioner, system, extra, mask)
@@ -620,7 +620,7 @@ def solve_shading(
             res = dataclasses.replace(res, x=x, residual=torch.where(worse, res0, res.residual))
     _sync(dev)
     times["solve"] = time.perf_counter() - t0
-    if cache is not None and fresh:
+    if fresh:
         cache.preconditioner, cache.fresh_iterations = precond, res.iterations
     # a row the priors barely constrain (every pair cut) can make an early-stopped,
     # Jacobi-preconditioned solve overflow in float32; keep s finite and within 1e±8 of the
