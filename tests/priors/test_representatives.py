@@ -2,7 +2,11 @@ import pytest
 import torch
 
 from torchiid.core.exceptions import ShapeError
-from torchiid.priors.representatives import global_pair_term, representative_pixels
+from torchiid.priors.representatives import (
+    global_pair_term,
+    representative_pixels,
+    segment_layout,
+)
 
 D = torch.float64
 
@@ -57,6 +61,25 @@ def test_mask_and_negative_labels_are_ignored():
     reps = representative_pixels(f, lab, mask)
     use = mask[:, 0] & (lab >= 0)
     _check_reps(f, lab, reps, use)
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_a_layout_kept_across_feature_maps_gives_the_same_representatives(masked):
+    g = torch.Generator().manual_seed(6)
+    lab = _labels(seed=7)
+    mask = torch.rand(2, 1, 9, 11, generator=g) > 0.3 if masked else None
+    layout = segment_layout(lab, mask)
+    assert layout.dense is not masked  # unmasked: the features are read without a gather
+    for _ in range(3):  # new features each time (an alternation's r̄), one layout
+        f = torch.rand(2, 3, 9, 11, generator=g, dtype=D)
+        ref = representative_pixels(f, lab, mask)
+        got = representative_pixels(f, lab, mask, layout=layout)
+        for a, b in ((ref.index, got.index), (ref.valid, got.valid), (ref.label, got.label)):
+            assert torch.equal(a, b)
+        use = (lab >= 0) if mask is None else mask[:, 0] & (lab >= 0)
+        _check_reps(f, lab, got, use)
+    with pytest.raises(ShapeError, match="layout is for labels of shape"):
+        representative_pixels(torch.rand(1, 3, 9, 11), lab[:1], layout=layout)
 
 
 def test_global_pairs_count_and_weights():

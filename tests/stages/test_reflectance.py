@@ -64,6 +64,24 @@ def test_cache_reuses_the_proposal_factor_and_changes_nothing():
     assert len(ptrs) == 1 and ptrs == {cache.weights_buffer(rho, 12).data_ptr()}
 
 
+def test_cache_reuses_the_segment_layout_and_changes_nothing():
+    s, rho, gpca = _scene(h=32, w=40)
+    opts = ReflectanceOptions(max_outer=2, cg_max_iter=3, window=5)
+    mask = torch.ones(1, 1, 32, 40, dtype=torch.bool)
+    mask[..., :3, :] = False
+    problem = ReflectanceProblem(rho, s.image, segments=s.labels, mask=mask)
+    cache = ReflectanceCache()
+    for scale in (1.0, 0.8, 1.3):  # a new rho per alternation, the same segments and mask
+        p = problem.replace(rho=scale * rho)
+        got = solve_reflectance(p, W, opts, cache=cache)
+        ref = solve_reflectance(p, W, opts)
+        assert torch.equal(got.reflectance, ref.reflectance)
+        assert torch.equal(got.num_representatives, ref.num_representatives)
+    assert cache.hits == 2
+    solve_reflectance(problem.replace(mask=~mask), W, opts, cache=cache)  # another mask
+    assert cache.hits == 2
+
+
 def test_batch_equals_one_by_one():
     s, rho, gpca = _scene(batch=2, h=32, w=40)
     opts = ReflectanceOptions(max_outer=3, cg_max_iter=4, window=5)

@@ -71,7 +71,12 @@ from torchiid.priors.reflectance_terms import (
     merged_stencil_affinity,
     stencil_affinity,
 )
-from torchiid.priors.representatives import global_pair_term, representative_pixels
+from torchiid.priors.representatives import (
+    SegmentLayout,
+    global_pair_term,
+    representative_pixels,
+    segment_layout,
+)
 from torchiid.priors.stencil import Stencil
 from torchiid.solvers.split_bregman import SplitBregmanResult, split_bregman
 from torchiid.stages.config import (
@@ -110,12 +115,16 @@ class ReflectanceCache:
 
     Attributes:
         semantic: (key of the inputs, ``(B, K, H, W)`` factor) or ``None``.
+        layout: (key of the segments and mask, their
+            :class:`~torchiid.priors.representatives.SegmentLayout`) for ``C``'s
+            representatives, or ``None``.
         hits: how many computations were skipped.
         state_valid: the storage holds the last solve's Bregman variable of the local term
             (what ``ReflectanceOptions.warm_state`` starts the next solve from).
     """
 
     semantic: tuple[InputKey, torch.Tensor] | None = None
+    layout: tuple[InputKey, SegmentLayout] | None = None
     hits: int = 0
     state_valid: bool = False
     _state: torch.Tensor | None = None
@@ -325,7 +334,16 @@ def build_reflectance_terms(
     t3 = time.perf_counter()
     nrep = torch.zeros(b, dtype=torch.long, device=rho.device)
     if use_c:
-        reps = representative_pixels(rbar, problem.segments, mask)
+        layout = None
+        if cache is not None:
+            key = input_key(problem.segments, mask)
+            if cache.layout is not None and cache.layout[0] == key:
+                layout = cache.layout[1]
+                cache.hits += 1
+            else:
+                layout = segment_layout(problem.segments, mask)
+                cache.layout = (key, layout)
+        reps = representative_pixels(rbar, problem.segments, mask, layout=layout)
         terms["C"] = (float(weights.gamma_g), global_pair_term(rbar, reps, o.t))
         nrep = reps.counts
     if problem.temporal is not None:
