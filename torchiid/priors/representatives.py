@@ -48,8 +48,10 @@ class Representatives:
 
 @dataclass(frozen=True)
 class SegmentLayout:
-    """Which pixels belong to which segment: the part of :func:`representative_pixels` that
-    depends on the labels and the mask only (the alternations on one image share it).
+    """Which pixels belong to which segment, for :func:`representative_pixels`.
+
+    The part of the search that depends on the labels and the mask only, so the alternations
+    on one image share it.
 
     Attributes:
         shape: ``(B, H, W)`` of the labels.
