@@ -11,6 +11,8 @@ Image Decomposition" (IJCV). Images are channel-first **linear** RGB tensors ``(
 (torch.Size([1, 3, 64, 64]), torch.Size([1, 1, 64, 64]))
 """
 
+# first: before anything imports torch (see the module)
+import torchiid.openmp  # noqa: F401
 from torchiid import edit
 from torchiid.baselines.retinex import ColorRetinex, color_retinex
 from torchiid.core.exceptions import (
