@@ -14,7 +14,6 @@ import threading
 import time
 
 import pytest
-from conftest import FAST
 
 from torchiid.cli import main
 from torchiid.collection import RunInterrupted, RunSettings, run_collection
@@ -22,6 +21,8 @@ from torchiid.collection.manifest import read_records
 from torchiid.io.inputs import InputItem
 from torchiid.io.layers import layer_file_names
 from torchiid.params import Parameters
+
+from conftest import FAST
 
 distributed = pytest.importorskip("distributed")
 

@@ -6,10 +6,11 @@ import os
 from pathlib import Path
 
 import pytest
-from conftest import photo
 
 from torchiid.core.exceptions import TorchiidError
 from torchiid.io.inputs import InputItem, list_inputs, read_list_file, unique_keys
+
+from conftest import photo
 
 
 def _keys(items):

@@ -10,7 +10,6 @@ import time
 import cv2
 import numpy as np
 import pytest
-from conftest import FAST, photo
 
 from torchiid.cli import main
 from torchiid.collection import (
@@ -27,6 +26,8 @@ from torchiid.core.exceptions import ModelError
 from torchiid.io.inputs import list_inputs, unique_keys
 from torchiid.io.layers import layer_file_names
 from torchiid.params import Parameters
+
+from conftest import FAST, photo
 
 
 def _records(out):

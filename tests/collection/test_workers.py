@@ -15,7 +15,6 @@ import threading
 import time
 
 import pytest
-from conftest import FAST
 
 from torchiid.cli import main
 from torchiid.collection import RunSettings, SetupError, run_collection
@@ -23,6 +22,8 @@ from torchiid.collection.manifest import read_records
 from torchiid.io.inputs import list_inputs
 from torchiid.io.layers import layer_file_names
 from torchiid.params import Parameters
+
+from conftest import FAST
 
 
 def _kill_when_held(folder, stem, sig=signal.SIGKILL, timeout=90):
