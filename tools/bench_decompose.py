@@ -18,8 +18,9 @@ time.
 
 from __future__ import annotations
 
+import torchiid.openmp  # noqa: F401  (before torch: see torchiid/openmp.py)
+
 import argparse
-import importlib
 import json
 import resource
 import statistics
@@ -50,9 +51,6 @@ def _image(name: str, long_side: int):
 
 
 def _worker(args: argparse.Namespace) -> None:
-    # torchiid before torch, as the command line imports them: its OpenMP setting
-    # (torchiid.openmp) has to precede torch's load to take effect
-    importlib.import_module("torchiid")
     import torch
 
     from torchiid.model import decompose

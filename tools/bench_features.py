@@ -9,6 +9,8 @@ increasing memory order, so each peak is an upper bound for that configuration.
 
 from __future__ import annotations
 
+import torchiid.openmp  # noqa: F401  (before torch: see torchiid/openmp.py)
+
 import argparse
 import resource
 import statistics

@@ -14,6 +14,8 @@ The torch column is measured with the kernels switched off, as ``TORCHIID_KERNEL
 
 from __future__ import annotations
 
+import torchiid.openmp  # noqa: F401  (before torch: see torchiid/openmp.py)
+
 import argparse
 import statistics
 import time

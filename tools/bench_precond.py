@@ -25,6 +25,8 @@ shifts the mean afterwards; the anchor is below float32 resolution).
 
 from __future__ import annotations
 
+import torchiid.openmp  # noqa: F401  (before torch: see torchiid/openmp.py)
+
 import argparse
 import time
 import warnings

@@ -13,6 +13,8 @@ process CPU time (best of ``repeats``; close to the wall time of an idle machine
 
 from __future__ import annotations
 
+import torchiid.openmp  # noqa: F401  (before torch: see torchiid/openmp.py)
+
 import argparse
 import os
 import resource

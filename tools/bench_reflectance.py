@@ -11,6 +11,8 @@ constant 8-d g-feature map and Felzenszwalb segments.
 
 from __future__ import annotations
 
+import torchiid.openmp  # noqa: F401  (before torch: see torchiid/openmp.py)
+
 import argparse
 import resource
 import time

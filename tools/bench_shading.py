@@ -9,6 +9,8 @@ process's peak resident memory so far (sizes run in increasing order).
 
 from __future__ import annotations
 
+import torchiid.openmp  # noqa: F401  (before torch: see torchiid/openmp.py)
+
 import argparse
 import resource
 import time

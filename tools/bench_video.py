@@ -15,6 +15,8 @@ where a later frame's time goes. Run it on an otherwise idle machine.
 
 from __future__ import annotations
 
+import torchiid.openmp  # noqa: F401  (before torch: see torchiid/openmp.py)
+
 import argparse
 import statistics
 import time

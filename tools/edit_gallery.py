@@ -10,6 +10,8 @@ Decomposes two ``skimage.data`` photos once each (the coffee cup and the astrona
 
 from __future__ import annotations
 
+import torchiid.openmp  # noqa: F401  (before torch: see torchiid/openmp.py)
+
 import argparse
 from pathlib import Path
 

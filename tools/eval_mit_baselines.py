@@ -10,6 +10,8 @@ image, reflectance = 1). Prints a per-object table, the means and the Retinex ti
 
 from __future__ import annotations
 
+import torchiid.openmp  # noqa: F401  (before torch: see torchiid/openmp.py)
+
 import argparse
 import time
 from pathlib import Path

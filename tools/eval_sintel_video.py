@@ -15,6 +15,8 @@ flow, and the mean MIT LMSE against the true layers.
 
 from __future__ import annotations
 
+import torchiid.openmp  # noqa: F401  (before torch: see torchiid/openmp.py)
+
 import argparse
 import sys
 import time

@@ -18,6 +18,8 @@ enlarged 3x (573 x 1152, which the method solves at 512 px and brings back to fu
 
 from __future__ import annotations
 
+import torchiid.openmp  # noqa: F401  (before torch: see torchiid/openmp.py)
+
 import argparse
 import json
 

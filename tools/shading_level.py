@@ -12,6 +12,8 @@ in the shading than it is. Also prints the object's LMSE.
 
 from __future__ import annotations
 
+import torchiid.openmp  # noqa: F401  (before torch: see torchiid/openmp.py)
+
 import argparse
 import json
 from pathlib import Path

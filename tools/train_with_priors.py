@@ -20,6 +20,8 @@ Usage::
 
 from __future__ import annotations
 
+import torchiid.openmp  # noqa: F401  (before torch: see torchiid/openmp.py)
+
 import argparse
 import time
 

@@ -13,6 +13,7 @@ Image Decomposition" (IJCV). Images are channel-first **linear** RGB tensors ``(
 
 # first: before anything imports torch (see the module)
 import torchiid.openmp  # noqa: F401
+
 from torchiid import edit
 from torchiid.baselines.retinex import ColorRetinex, color_retinex
 from torchiid.core.exceptions import (
