@@ -5,12 +5,14 @@ for ``GOMP_SPINCOUNT`` iterations (300,000 by default, most of a millisecond) af
 parallel region before it sleeps. The pipeline alternates torch operations with its compiled
 kernels, which run on other threads (numba's own OpenMP runtime and a small band pool), so
 on a machine with few cores the spinning torch threads take the cores those kernels need.
-With 30,000 a 512×384 photo takes 1.71–1.75 s instead of 1.79–1.86 s on 2 cores, with the
-same results (README "Speed and memory"). A value the user has set is kept; the setting only
-takes effect when ``torchiid`` is imported before ``torch`` (libgomp reads it once, at load),
-as the command line does. Other OpenMP runtimes (LLVM's, Intel's) ignore it.
+With 30,000 a 512×384 photo took 1.67–1.72 s instead of 1.78–1.88 s on 2 cores (three
+interleaved pairs), with the same results (README "Speed and memory"). A value the user has
+set is kept; the setting only takes effect when ``torchiid`` is imported before ``torch``
+(libgomp reads it once, at load), as the command line does. Other OpenMP runtimes (LLVM's,
+Intel's) ignore it.
 """
 
+import logging
 import os
 import sys
 
@@ -21,3 +23,9 @@ SPIN_COUNT = "30000"
 TOO_LATE = "torch" in sys.modules
 
 os.environ.setdefault("GOMP_SPINCOUNT", SPIN_COUNT)
+if TOO_LATE and os.environ["GOMP_SPINCOUNT"] == SPIN_COUNT:
+    logging.getLogger(__name__).debug(
+        "torch was imported before torchiid, so GOMP_SPINCOUNT=%s does not reach torch's "
+        "OpenMP threads; import torchiid first or export the variable (README 'Python')",
+        SPIN_COUNT,
+    )

@@ -55,7 +55,9 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import kornia
 import torch
@@ -129,6 +131,20 @@ class ReflectanceCache:
     state_valid: bool = False
     _state: torch.Tensor | None = None
     _weights: torch.Tensor | None = None
+
+    def reuse(self, slot: str, key: InputKey, compute: Callable[[], Any]) -> Any:
+        """The value kept in ``slot`` if it was made from the inputs ``key``, else ``compute()``.
+
+        ``slot`` is ``"semantic"`` or ``"layout"``; a computed value is kept there (with
+        ``key``) for the next call, and every reuse counts in :attr:`hits`.
+        """
+        kept = getattr(self, slot)
+        if kept is not None and kept[0] == key:
+            self.hits += 1
+            return kept[1]
+        value = compute()
+        setattr(self, slot, (key, value))
+        return value
 
     def state_buffer(self, like: torch.Tensor, num_offsets: int) -> torch.Tensor:
         """Storage ``(B, C, K, H, W)`` for the Bregman variable, reused across calls."""
@@ -294,14 +310,14 @@ def build_reflectance_terms(
     t_m = o.t_g or o.t
     e_g = None
     if use_b:
-        key = input_key(gpca, t_m, mask, rho.dtype, o.window)
-        if cache is not None and cache.semantic is not None and cache.semantic[0] == key:
-            e_g = cache.semantic[1]
-            cache.hits += 1
+
+        def factor() -> torch.Tensor:
+            return stencil_affinity(gpca.to(rho.dtype), stencil, t_m, mask)
+
+        if cache is None:
+            e_g = factor()
         else:
-            e_g = stencil_affinity(gpca.to(rho.dtype), stencil, t_m, mask)
-            if cache is not None:
-                cache.semantic = (key, e_g)
+            e_g = cache.reuse("semantic", input_key(gpca, t_m, mask, rho.dtype, o.window), factor)
     t2 = time.perf_counter()
     if use_a and use_b and o.merge_stencil_terms:
         gl, gm = weights.gamma_l, weights.gamma_m
@@ -337,12 +353,7 @@ def build_reflectance_terms(
         layout = None
         if cache is not None:
             key = input_key(problem.segments, mask)
-            if cache.layout is not None and cache.layout[0] == key:
-                layout = cache.layout[1]
-                cache.hits += 1
-            else:
-                layout = segment_layout(problem.segments, mask)
-                cache.layout = (key, layout)
+            layout = cache.reuse("layout", key, lambda: segment_layout(problem.segments, mask))
         reps = representative_pixels(rbar, problem.segments, mask, layout=layout)
         terms["C"] = (float(weights.gamma_g), global_pair_term(rbar, reps, o.t))
         nrep = reps.counts
