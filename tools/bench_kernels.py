@@ -64,11 +64,20 @@ def _cases(h: int, w: int):
             return lean.bregman_step(z1, replay, 0.05, with_l1=False, final=True)
         return stored.bregman_step(z1, state, 0.05, with_l1=False)
 
+    # the converged preset's updates: a stored state read and written (float32, and the
+    # pipeline's 16-bit fixed point)
+    shape = (1, 3, st11.num_offsets, h, w)
+    f32 = StencilL1Term(st11, weights, state=torch.zeros(shape), warm=True, replay=False)
+    i16 = StencilL1Term(st11, weights, state=torch.zeros(shape, dtype=torch.int16), warm=True,
+                        state_step=kernels.fixed_point_scales(0.05)[0], replay=False)  # fmt: skip
+
     return [
         ("shading 5x5 product", lambda: q.matvec(x)),
         ("reflectance 11x11 product", lambda: l1.normal_matvec(z)),
         ("matting to stencil", lambda: matting_stencil(base)),
         ("Bregman update (2nd)", update),
+        ("stored update, float32", lambda: f32.bregman_step(z1, f32.state, 0.05, False)),
+        ("stored update, int16", lambda: i16.bregman_step(z1, i16.state, 0.05, False)),
     ]
 
 

@@ -264,49 +264,107 @@ def test_replayed_bregman_update_matches_the_stored_state_update(history, monkey
     torch.testing.assert_close(fast, rhs, rtol=1e-5, atol=1e-5)
 
 
-def test_stored_state_bregman_updates_match_the_torch_path(monkeypatch, torch_ops):
+@pytest.mark.parametrize("fixed", [False, True], ids=["float32", "int16"])
+def test_stored_state_bregman_updates_match_the_torch_path(fixed, monkeypatch, torch_ops):
     """The compiled update of a stored state (fresh, read and written, read only on the
     final step, warm from a given state, and a replayed state materialised) gives the torch
-    path's state, bitwise, and its right-hand side."""
+    path's state, bitwise, and its right-hand side; in float32 and in 16-bit fixed point,
+    warm-started from a state written at another threshold."""
     monkeypatch.setattr(kernels, "REPLAY_BLOCK_ROWS", 8)
     g = torch.Generator().manual_seed(11)
     st = Stencil.square(27, 21, 11)
     w = torch.rand(2, st.num_offsets, 27, 21, generator=g) * st.valid
     zs = [torch.rand(2, 3, 27, 21, generator=g) * 0.3 for _ in range(4)]
     valid = st.valid.view(1, 1, st.num_offsets, 27, 21).expand(2, 3, -1, -1, -1)
+    shape = (2, 3, st.num_offsets, 27, 21)
+    step0 = kernels.fixed_point_scales(0.024)[0]  # the warm state's threshold: not 0.02
 
     def run(keep_state, warm_from=None):
-        state = None if warm_from is None else warm_from.clone()
+        if warm_from is not None:
+            state = warm_from.clone()
+        else:  # fixed point: the term's storage decides the format
+            state = torch.empty(shape, dtype=torch.int16) if fixed else None
         term = StencilL1Term(st, w, zero_invalid=False, keep_state=keep_state, replay=False,
-                             state=state, warm=warm_from is not None)  # fmt: skip
+                             state=state, warm=warm_from is not None,
+                             state_step=step0 if fixed else None)  # fmt: skip
         b, out = term.initial_state, []
         for n, z in enumerate(zs):
             final = n == len(zs) - 1
             b, rhs, _ = term.bregman_step(z, b, 0.02, with_l1=False, final=final)
             out.append((None if b is None else b.clone(), rhs, term.state_written))
-        return out
+        return out, term.state_step
 
     for keep in (True, False):
-        warm = torch.rand(2, 3, st.num_offsets, 27, 21, generator=g) * 0.04 - 0.02
+        warm = torch.rand(shape, generator=g) * 0.048 - 0.024
+        if fixed:
+            warm = (warm / step0).round().to(torch.int16)
         for start in (None, warm):
-            fast = run(keep, start)
-            ref = torch_ops(lambda k=keep, s=start: run(k, s))
+            fast, fast_step = run(keep, start)
+            ref, ref_step = torch_ops(lambda k=keep, s=start: run(k, s))
+            assert fast_step == ref_step
             for (bf, rf, wf), (br, rr, wr) in zip(fast, ref, strict=True):
                 assert wf == wr
                 torch.testing.assert_close(rf, rr, rtol=1e-5, atol=1e-5)
                 if br is not None:  # entries of pairs leaving the image are unspecified
+                    assert bf.dtype == (torch.int16 if fixed else torch.float32)
                     assert torch.equal(bf[valid], br[valid])
             # the last update of a solve that keeps no state leaves it as it was
             assert fast[-1][2] is keep
     # a replayed state (default solves) materialised by one compiled call equals the torch one
-    term = StencilL1Term(st, w, zero_invalid=False, keep_state=False)
+    storage = torch.empty(shape, dtype=torch.int16) if fixed else None
+    term = StencilL1Term(st, w, zero_invalid=False, keep_state=False, state=storage)
     b = None
     for z in zs[:2]:
         b, _, _ = term.bregman_step(z, b, 0.02, with_l1=False)
     assert type(b).__name__ == "_Replay"
-    fast = term._materialise(b, compiled=True)
+    fast = term._materialise(b, compiled=True).clone()
     ref = torch_ops(lambda: term._materialise(b, compiled=False))
     assert torch.equal(fast[valid], ref[valid])
+    if fixed:  # replayed in float32 and rounded once: the float32 state, rounded
+        float_term = StencilL1Term(st, w, zero_invalid=False, keep_state=False)
+        exact = float_term._materialise(b, compiled=True)
+        step, inv = kernels.fixed_point_scales(0.02)
+        assert term.state_step == step
+        assert torch.equal(fast[valid], (exact * inv).round().to(torch.int16)[valid])
+
+
+def test_fixed_point_state_is_the_float_state_rounded_to_its_step(torch_ops, monkeypatch):
+    """A 16-bit state is read as ``q · step`` of the threshold that wrote it and written as
+    ``rint(b' · 32767 / λ)``: one update from it equals the float32 update from the decoded
+    values, with the new state rounded to the new threshold's step (both paths; on CPU the
+    compiled kernel takes it, not the torch ops)."""
+    g = torch.Generator().manual_seed(4)
+    st = Stencil.square(19, 23, 11)
+    w = torch.rand(1, st.num_offsets, 19, 23, generator=g) * st.valid
+    z = torch.rand(1, 3, 19, 23, generator=g) * 0.5
+    valid = st.valid.view(1, 1, st.num_offsets, 19, 23).expand(1, 3, -1, -1, -1)
+    lam0, lam = 0.05, 0.04
+    step0 = kernels.fixed_point_scales(lam0)[0]
+    q0 = torch.randint(-32767, 32768, (1, 3, st.num_offsets, 19, 23), generator=g)
+    q0 = q0.to(torch.int16)
+    step, inv = kernels.fixed_point_scales(lam)
+    assert step == pytest.approx(lam / 32767, rel=1e-6) and inv == pytest.approx(32767 / lam)
+
+    def update(state, state_step):
+        term = StencilL1Term(st, w, zero_invalid=False, state=state, warm=True,
+                             state_step=state_step, replay=False)  # fmt: skip
+        b, rhs, _ = term.bregman_step(z, term.initial_state, lam, with_l1=False)
+        return b, rhs, term.state_step
+
+    def compiled(f):
+        with monkeypatch.context() as mp:
+            mp.setattr(StencilL1Term, "_torch_step", None)  # a call would fail
+            return f()
+
+    for run in (compiled, torch_ops):
+        exact, rhs_exact, _ = run(lambda: update(q0.float() * step0, None))
+        q, rhs, new_step = run(lambda: update(q0.clone(), step0))
+        assert new_step == step
+        torch.testing.assert_close(rhs, rhs_exact, rtol=0, atol=0)
+        assert torch.equal(q[valid], (exact * inv).round().to(torch.int16)[valid])
+        assert int(q[valid].abs().max()) == 32767  # |b'| reaches λ: the full range is used
+        err = (q[valid].float() * step - exact[valid]).abs().max()
+        assert float(err) <= 0.5 * step * (1 + 1e-3)
 
 
 def test_replayed_bregman_update_does_not_depend_on_the_thread_count(monkeypatch):

@@ -227,6 +227,8 @@ def test_warm_bregman_state_reaches_the_same_minimum_in_fewer_iterations():
     cache = ReflectanceCache()
     first = solve_reflectance(problem, W, warm_opts, cache=cache)
     assert cache.state_valid
+    # kept in 16-bit fixed point, with the step of the threshold that wrote it
+    assert cache._state.dtype == torch.int16 and 0 < cache.state_step < 1e-3
     warm = solve_reflectance(nxt, w2, warm_opts, z0=first.reflectance, cache=cache)
     cold = solve_reflectance(nxt, w2, opts, z0=first.reflectance, cache=ReflectanceCache())
     assert bool(warm.solver.converged.all()) and bool(cold.solver.converged.all())

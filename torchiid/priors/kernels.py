@@ -53,6 +53,7 @@ __all__ = [
     "matting_window_terms",
     "bregman_replay",
     "bregman_update",
+    "fixed_point_scales",
     "matting_weights",
 ]
 
@@ -221,6 +222,7 @@ def bregman_update(
     read: bool = False,
     write: bool = False,
     history: list[torch.Tensor] | tuple[()] = (),
+    state_step: float = 1.0,
 ) -> torch.Tensor:
     """A ``StencilL1Term`` Bregman update at ``z``: its right-hand side, ``state`` updated.
 
@@ -233,9 +235,13 @@ def bregman_update(
     after it are added once all blocks are done, in block order, so the result does not
     depend on the number of threads.
 
+    A ``torch.int16`` state holds the variable in 16-bit fixed point (see
+    :func:`fixed_point_scales`): it is read as ``q · state_step`` and written with the step
+    of ``lam``.
+
     Shape:
         z and history items ``(B, C, H, W)``, weights ``(B, K, H, W)``, state ``(B, C, K, H,
-        W)`` contiguous -> ``(B, C, H, W)``.
+        W)`` contiguous (``z``'s dtype or ``torch.int16``) -> ``(B, C, H, W)``.
     """
     import numpy as np
 
@@ -248,9 +254,15 @@ def bregman_update(
         raise ShapeError(
             f"state must be a contiguous {(b, c, len(offsets), h, w)} tensor to read or write"
         )
+    if state is not None and state.dtype not in (z.dtype, torch.int16):
+        raise ShapeError(f"state must be {z.dtype} or torch.int16, got {state.dtype}")
     zs = torch.stack([*history, z]).contiguous()
     rhs = torch.empty(b, c, h, w, dtype=z.dtype)
     st = state if state is not None else torch.empty(0, 0, 0, 0, 0, dtype=z.dtype)
+    ftype = rhs.numpy().dtype.type
+    fixed = st.dtype == torch.int16
+    scale_in = ftype(state_step if fixed else 1.0)
+    inv_out = ftype(fixed_point_scales(lam)[1] if fixed else 0.0)
     depth = max(1, int(dys.max()))
     rows = b * h
     block = REPLAY_BLOCK_ROWS
@@ -271,6 +283,8 @@ def bregman_update(
         st.numpy(),
         bool(read),
         bool(write),
+        scale_in,
+        inv_out,
         rhs.numpy(),
         halo,
         block,
@@ -287,6 +301,23 @@ def bregman_update(
             f.result()
     kernel.add_halos(rhs.numpy(), halo, block)
     return rhs
+
+
+#: the largest magnitude of a 16-bit fixed-point Bregman variable: ``λ`` is stored as this
+STATE_LEVELS = 32767
+
+
+def fixed_point_scales(lam: float) -> tuple[float, float]:
+    """``(step, inverse)`` of a 16-bit fixed-point Bregman variable written at threshold ``λ``.
+
+    The variable lies in ``[−λ, λ]`` (it is clamped there), so it is stored as ``q =
+    rint(b · inverse)``, an integer in ``[−32767, 32767]``, and read back as ``q · step``: an
+    absolute error of at most ``λ / 65534``. Both are float32 numbers, so that the torch ops
+    and the compiled kernel compute the same values.
+    """
+    import numpy as np
+
+    return float(np.float32(lam / STATE_LEVELS)), float(np.float32(STATE_LEVELS / lam))
 
 
 #: rows per block of :func:`bregman_update` (fixed, so that the result does not depend on

@@ -246,7 +246,7 @@ def _matting_windows(img, mask, eps, qp, r0, r1):  # pragma: no cover - compiled
 
 
 def _bregman_update(
-    zs, w, dys, dxs, lam, state, read, write, rhs, halo, block, k0, k1
+    zs, w, dys, dxs, lam, state, read, write, scale_in, inv_out, rhs, halo, block, k0, k1
 ):  # pragma: no cover - compiled
     """A Split-Bregman update of ``StencilL1Term``: the new state and the right-hand side.
 
@@ -258,6 +258,11 @@ def _bregman_update(
     2b')`` (``w (d − b')``) is added to ``rhs_i`` and subtracted from ``rhs_j``. These are the
     torch path's operations in its order, so ``b'`` is the value that path stores. With
     ``write=False`` and a history no ``(B, C, K, H, W)`` variable is read or written at all.
+
+    A 16-bit fixed-point ``state`` (``int16``; ``inv_out > 0``) holds ``b`` as ``q`` with ``b =
+    q · scale_in`` when read, and is written as ``q' = rint(b' · inv_out)`` (round half to
+    even, as ``torch.round``); the right-hand side uses the unrounded ``b'``. A float ``state``
+    is read and written as it is (``inv_out = 0``; ``scale_in`` unused).
 
     The ``B·H`` rows are cut into blocks of ``block`` rows; this call does blocks ``k0 .. k1 −
     1``. Each block zeroes and writes its own rows; its contributions to the rows after it go
@@ -271,6 +276,7 @@ def _bregman_update(
     rows = nb * h
     nk = dys.shape[0]
     bbuf = np.empty(wd, dtype=zs.dtype)  # a row of Bregman variables
+    quant = inv_out > 0
     for blk in range(k0, k1):
         r0 = blk * block
         r1 = min(rows, r0 + block)
@@ -298,7 +304,11 @@ def _bregman_update(
                     else:
                         oj = halo[blk, rj - r1, c, x0 + dx : x0 + dx + n]
                     bb = bbuf[:n]
-                    if read:
+                    if read and quant:
+                        sq = state[b, c, k, y, x0 : x0 + n]
+                        for t in range(n):
+                            bb[t] = sq[t] * scale_in
+                    elif read:
                         bb[:] = state[b, c, k, y, x0 : x0 + n]
                     else:
                         bb[:] = 0.0
@@ -310,7 +320,15 @@ def _bregman_update(
                             bb[t] = min(max(u, -lam), lam)
                     zi = zs[m, b, c, y, x0 : x0 + n]
                     zj = zs[m, b, c, y + dy, x0 + dx : x0 + dx + n]
-                    if write:
+                    if write and quant:
+                        sr = state[b, c, k, y, x0 : x0 + n]
+                        for t in range(n):
+                            wt = wr[t]
+                            u = (zi[t] - zj[t]) * wt + bb[t]
+                            bn = min(max(u, -lam), lam)
+                            sr[t] = np.rint(bn * inv_out)
+                            bb[t] = (u - (bn + bn)) * wt
+                    elif write:
                         sr = state[b, c, k, y, x0 : x0 + n]
                         for t in range(n):  # bb becomes w (d − b'), the pair's contribution
                             wt = wr[t]

@@ -112,8 +112,9 @@ class ReflectanceCache:
     on Stage 0's ``g̊`` and the mask, not on the current ``ρ``, so the pipeline computes it once
     per image batch and reuses it; it is recomputed when its inputs (same tensors, unmodified)
     or parameters differ. It also keeps the storage of the Bregman variable (``(B, 3, K, H, W)``,
-    the stage's largest tensor) and of the merged ``A``/``B`` weights, so that later alternations
-    write into memory already in use.
+    the stage's largest tensor, in 16-bit fixed point: see
+    :class:`~torchiid.priors.reflectance_terms.StencilL1Term`) and of the merged ``A``/``B``
+    weights, so that later alternations write into memory already in use.
 
     Attributes:
         semantic: (key of the inputs, ``(B, K, H, W)`` factor) or ``None``.
@@ -123,12 +124,14 @@ class ReflectanceCache:
         hits: how many computations were skipped.
         state_valid: the storage holds the last solve's Bregman variable of the local term
             (what ``ReflectanceOptions.warm_state`` starts the next solve from).
+        state_step: the step of that variable's fixed-point values.
     """
 
     semantic: tuple[InputKey, torch.Tensor] | None = None
     layout: tuple[InputKey, SegmentLayout] | None = None
     hits: int = 0
     state_valid: bool = False
+    state_step: float | None = None
     _state: torch.Tensor | None = None
     _weights: torch.Tensor | None = None
 
@@ -147,12 +150,12 @@ class ReflectanceCache:
         return value
 
     def state_buffer(self, like: torch.Tensor, num_offsets: int) -> torch.Tensor:
-        """Storage ``(B, C, K, H, W)`` for the Bregman variable, reused across calls."""
+        """Storage ``(B, C, K, H, W)`` ``torch.int16`` for the Bregman variable, reused."""
         b, c, h, w = like.shape
         shape = (b, c, num_offsets, h, w)
         st = self._state
-        if st is None or st.shape != shape or st.dtype != like.dtype or st.device != like.device:
-            self._state = st = like.new_empty(shape)
+        if st is None or st.shape != shape or st.device != like.device:
+            self._state = st = like.new_empty(shape, dtype=torch.int16)
             self.state_valid = False
         return st
 
@@ -333,6 +336,7 @@ def build_reflectance_terms(
                 zero_invalid=False,
                 state=state,
                 warm=warm,
+                state_step=cache.state_step if warm else None,
                 # only a later warm start reads the last update's state
                 keep_state=o.warm_state and cache is not None,
                 replay=o.max_outer <= REPLAY_STEPS + 1,  # every update's history short enough
@@ -416,7 +420,9 @@ def solve_reflectance(
     )
     t5 = time.perf_counter()
     if cache is not None and "A+B" in built.terms and sol.outer_iterations.max() > 0:
-        cache.state_valid = built.terms["A+B"][1].state_written
+        local = built.terms["A+B"][1]
+        cache.state_valid = local.state_written
+        cache.state_step = local.state_step
     refl = sol.z.clamp_min(0.0)
     if mask is not None:
         refl = torch.where(mask, refl, rho)
