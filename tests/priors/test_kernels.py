@@ -328,6 +328,14 @@ def test_stored_state_bregman_updates_match_the_torch_path(fixed, monkeypatch, t
         assert torch.equal(fast[valid], (exact * inv).round().to(torch.int16)[valid])
 
 
+def test_fixed_point_scales_refuse_thresholds_out_of_range():
+    from torchiid.core.exceptions import ParameterError
+
+    for lam in (0.0, -1.0, 1e-36, float("nan"), float("inf")):
+        with pytest.raises(ParameterError, match="outside the 16-bit state's range"):
+            kernels.fixed_point_scales(lam)
+
+
 def test_fixed_point_state_is_the_float_state_rounded_to_its_step(torch_ops, monkeypatch):
     """A 16-bit state is read as ``q · step`` of the threshold that wrote it and written as
     ``rint(b' · 32767 / λ)``: one update from it equals the float32 update from the decoded

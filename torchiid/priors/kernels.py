@@ -43,7 +43,7 @@ from functools import cache
 
 import torch
 
-from torchiid.core.exceptions import ShapeError
+from torchiid.core.exceptions import ParameterError, ShapeError
 
 __all__ = [
     "usable",
@@ -317,7 +317,15 @@ def fixed_point_scales(lam: float) -> tuple[float, float]:
     """
     import numpy as np
 
-    return float(np.float32(lam / STATE_LEVELS)), float(np.float32(STATE_LEVELS / lam))
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        step = np.float32(lam / STATE_LEVELS) if lam > 0 else np.float32(0)
+        inverse = np.float32(STATE_LEVELS / lam) if lam > 0 else np.float32(np.inf)
+    if not (step > 0 and np.isfinite(step) and np.isfinite(inverse)):
+        raise ParameterError(
+            f"a Bregman threshold of {lam!r} is outside the 16-bit state's range (float32 "
+            f"steps of λ / {STATE_LEVELS}); use a larger term weight gamma, or 0 to drop it"
+        )
+    return float(step), float(inverse)
 
 
 #: rows per block of :func:`bregman_update` (fixed, so that the result does not depend on
