@@ -189,3 +189,43 @@ def test_pcg_callable_history_and_snapshots():
     snap = res.snapshots[1e-3]
     assert float(torch.linalg.norm(b - snap @ a) / torch.linalg.norm(b)) <= 1.01e-3
     assert np.isfinite(float(res.residual))
+
+
+def test_lambda_max_estimate_is_close_below_the_true_one():
+    """The Chebyshev smoother's ``λ_max(D⁻¹A)``: 15 Lanczos steps on a Retinex-like graph
+    Laplacian (near-binary weights, whose top of the spectrum is dense) land within 1% below
+    the dense eigenvalue (the power iteration it replaced was 2.8% low: enough for the
+    smoother, tuned to 1.1× the estimate, to amplify the modes above it), never above it, in
+    float64 and float32, per batch item."""
+    from torchiid.solvers.multigrid import _power_lmax
+
+    g = torch.Generator().manual_seed(1)
+    h, w = 24, 32
+    n = h * w
+    idx = torch.arange(n).view(h, w)
+    mats = []
+    for scale in (1.0, 3.0):
+        a = torch.zeros(n, n, dtype=torch.float64)
+        for i, j in ((idx[:, :-1], idx[:, 1:]), (idx[:-1, :], idx[1:, :])):
+            i, j = i.reshape(-1), j.reshape(-1)
+            near = torch.rand(i.shape, generator=g, dtype=torch.float64) < 0.7
+            wt = torch.where(near, scale, 1e-6 * scale)
+            a[i, j] -= wt
+            a[j, i] -= wt
+            a[i, i] += wt
+            a[j, j] += wt
+        a += torch.diag(1e-3 * torch.rand(n, generator=g, dtype=torch.float64))
+        mats.append(a)
+    big = torch.stack(mats)  # (2, n, n)
+    d = big.diagonal(dim1=1, dim2=2)
+    s = d.rsqrt()
+    true = torch.linalg.eigvalsh(big * s[:, :, None] * s[:, None, :])[:, -1]
+
+    for dtype in (torch.float64, torch.float32):
+
+        def matvec(v, m=big.to(dtype)):
+            return torch.bmm(m, v.reshape(2, n, 1)).reshape(v.shape)
+
+        est = _power_lmax(matvec, (1 / d).to(dtype).view(2, 1, h, w), 15).flatten().double()
+        assert torch.all(est >= 0.99 * true), (est, true)
+        assert torch.all(est <= true * (1 + 1e-5)), (est, true)

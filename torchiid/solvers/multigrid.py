@@ -532,21 +532,43 @@ def _power_lmax(
 ) -> torch.Tensor:
     """Per-item estimate ``(B, 1, 1, 1)`` of the largest eigenvalue of ``D^{-1} A``.
 
-    Power iteration on the symmetric ``D^{-1/2} A D^{-1/2}`` (same spectrum).
+    ``iters`` Lanczos steps on the symmetric ``D^{-1/2} A D^{-1/2}`` (same spectrum) from a
+    zero-mean random start; the estimate is the largest eigenvalue of the Lanczos
+    tridiagonal, which never exceeds the true one (callers add a margin). It replaced a power
+    iteration from a mostly constant start, which converges slowly where the top of the
+    spectrum is dense: on a photo's shading system (a 512×384 JPEG of chelsea) its 15 steps
+    gave 1.86 on the second level against 2.28 after 200 steps, and the Chebyshev smoother,
+    tuned to ``1.1 × 1.86``, amplified the modes above it: 97 multigrid-PCG iterations instead
+    of 14 (the mirrored photo: 14 either way).
     """
     g = torch.Generator(device="cpu").manual_seed(seed)
     s = dinv.clamp_min(0).sqrt()
+    b = dinv.shape[0]
     # the same start for every item: a batch gives its items' one-by-one preconditioners
-    x = torch.rand((1, *dinv.shape[1:]), generator=g, dtype=torch.float64).to(dinv) + 0.5
-    x = x.expand_as(dinv).contiguous()
-    x = x / x.flatten(1).norm(dim=1).view(-1, 1, 1, 1)
-    lam = torch.ones(dinv.shape[0], 1, 1, 1, dtype=dinv.dtype, device=dinv.device)
-    for _ in range(iters):
-        y = s * matvec(s * x)
-        nrm = y.flatten(1).norm(dim=1).view(-1, 1, 1, 1)
-        lam = (y * x).flatten(1).sum(1).view(-1, 1, 1, 1)  # Rayleigh quotient, x normalised
-        x = y / nrm.clamp_min(torch.finfo(y.dtype).tiny)
-    return lam
+    x = torch.rand((1, *dinv.shape[1:]), generator=g, dtype=torch.float64) - 0.5
+    q = x.to(dinv).expand_as(dinv).contiguous()
+    q = q / q.flatten(1).norm(dim=1).clamp_min(torch.finfo(q.dtype).tiny).view(-1, 1, 1, 1)
+    q_prev = torch.zeros_like(q)
+    beta = torch.zeros(b, 1, 1, 1, dtype=q.dtype, device=q.device)
+    alphas, betas = [], []
+    for _ in range(max(1, iters)):
+        w = s * matvec(s * q)
+        alpha = (w * q).flatten(1).sum(1).view(-1, 1, 1, 1)
+        w = w - alpha * q - beta * q_prev
+        beta = w.flatten(1).norm(dim=1).view(-1, 1, 1, 1)
+        alphas.append(alpha.flatten())
+        betas.append(beta.flatten())
+        # an exhausted Krylov space (beta ~ 0) is exact: that item's later steps add zeros
+        live = beta > 1e-6 * alpha.abs().clamp_min(torch.finfo(q.dtype).tiny)
+        q_prev, q = q, torch.where(live, w / beta.clamp_min(torch.finfo(q.dtype).tiny), 0)
+        beta = torch.where(live, beta, 0)
+    a = torch.stack(alphas, dim=1).to(torch.float64).cpu()  # (B, k)
+    off = torch.stack(betas[:-1], dim=1).to(torch.float64).cpu() if len(betas) > 1 else None
+    t = torch.diag_embed(a)
+    if off is not None:
+        t = t + torch.diag_embed(off, offset=1) + torch.diag_embed(off, offset=-1)
+    lam = torch.linalg.eigvalsh(t)[:, -1]
+    return lam.to(dtype=dinv.dtype, device=dinv.device).view(-1, 1, 1, 1)
 
 
 @dataclass
@@ -598,7 +620,8 @@ class GalerkinMultigrid:
         degree: Chebyshev degree of each pre-/post-smoothing.
         max_coarse: largest coarsest grid (unknowns per image) solved densely.
         max_levels: cap on the number of levels.
-        power_iters: power iterations estimating ``lambda_max`` per level.
+        power_iters: Lanczos steps estimating ``lambda_max`` per level (the name is that of
+            the power iteration it replaced).
         setup_dtype: dtype of the Galerkin products (``None``: the operator's).
         coarse_shift: relative diagonal shift of the coarsest matrix (see above).
         prolong_omega: prolongation smoothing ``omega * lambda_max(D_l^{-1} A_l)``.
