@@ -222,8 +222,9 @@ def test_lambda_max_estimate_is_close_below_the_true_one():
     true = torch.linalg.eigvalsh(big * s[:, :, None] * s[:, None, :])[:, -1]
 
     for dtype in (torch.float64, torch.float32):
+        m = big.to(dtype)
 
-        def matvec(v, m=big.to(dtype)):
+        def matvec(v, m=m):
             return torch.bmm(m, v.reshape(2, n, 1)).reshape(v.shape)
 
         est = _power_lmax(matvec, (1 / d).to(dtype).view(2, 1, h, w), 15).flatten().double()
