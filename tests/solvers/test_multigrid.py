@@ -197,7 +197,7 @@ def test_lambda_max_estimate_is_close_below_the_true_one():
     the dense eigenvalue (the power iteration it replaced was 2.8% low: enough for the
     smoother, tuned to 1.1× the estimate, to amplify the modes above it), never above it, in
     float64 and float32, per batch item."""
-    from torchiid.solvers.multigrid import _power_lmax
+    from torchiid.solvers.multigrid import _lanczos_lmax
 
     g = torch.Generator().manual_seed(1)
     h, w = 24, 32
@@ -227,6 +227,6 @@ def test_lambda_max_estimate_is_close_below_the_true_one():
         def matvec(v, m=m):
             return torch.bmm(m, v.reshape(2, n, 1)).reshape(v.shape)
 
-        est = _power_lmax(matvec, (1 / d).to(dtype).view(2, 1, h, w), 15).flatten().double()
+        est = _lanczos_lmax(matvec, (1 / d).to(dtype).view(2, 1, h, w), 15).flatten().double()
         assert torch.all(est >= 0.99 * true), (est, true)
         assert torch.all(est <= true * (1 + 1e-5)), (est, true)

@@ -524,7 +524,7 @@ class _DenseSPD:
         return torch.cholesky_solve(rhs, self.chol)
 
 
-def _power_lmax(
+def _lanczos_lmax(
     matvec: Callable[[torch.Tensor], torch.Tensor],
     dinv: torch.Tensor,
     iters: int,
@@ -661,14 +661,14 @@ class GalerkinMultigrid:
             work = cur.to(dtype=self.work_dtype)
             dinv = 1 / work.diagonal()
             full_dinv = 1 / cur.diagonal()
-            lmax = 1.1 * _power_lmax(cur.matvec, full_dinv, power_iters).to(self.work_dtype)
+            lmax = 1.1 * _lanczos_lmax(cur.matvec, full_dinv, power_iters).to(self.work_dtype)
             lev = _Level(work, dinv, lmax)
             self.levels.append(lev)
             if last:
                 break
             loc = cur.local()
             dl_inv = 1 / loc.d
-            rho = _power_lmax(loc.stencil_matvec, dl_inv, power_iters)
+            rho = _lanczos_lmax(loc.stencil_matvec, dl_inv, power_iters)
             omega = prolong_omega / rho
             hc, wc = -(-cur.height // block), -(-cur.width // block)
             coarse = self._galerkin(cur, loc, dl_inv, omega, (hc, wc))
