@@ -332,8 +332,10 @@ def test_fixed_point_scales_refuse_thresholds_out_of_range():
     from torchiid.core.exceptions import ParameterError
 
     for lam in (0.0, -1.0, 1e-36, float("nan"), float("inf")):
-        with pytest.raises(ParameterError, match="outside the 16-bit state's range"):
+        assert not kernels.fixed_point_fits(lam)
+        with pytest.raises(ParameterError, match="cannot be kept in a 16-bit state"):
             kernels.fixed_point_scales(lam)
+    assert kernels.fixed_point_fits(1e-30) and kernels.fixed_point_fits(1e30)
 
 
 def test_fixed_point_state_is_the_float_state_rounded_to_its_step(torch_ops, monkeypatch):

@@ -243,6 +243,26 @@ def test_warm_bregman_state_reaches_the_same_minimum_in_fewer_iterations():
     torch.testing.assert_close(again.reflectance, cold.reflectance)
 
 
+def test_weights_too_small_for_the_fixed_point_state_keep_it_in_float32():
+    # λ = γ / θ below what a 16-bit state's float32 step resolves: the cache stores the state
+    # in float32 and the warm-started solve runs as before, with no error
+    from torchiid.params import Parameters
+
+    s, rho, gpca = _scene()
+    problem = ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels)
+    opts = Parameters.preset("converged").reflectance_options()
+    tiny = ReflectanceWeights(gamma_l=1e-36, gamma_m=1e-36, gamma_g=1e-36)
+    cache = ReflectanceCache()
+    for _ in range(2):
+        r = solve_reflectance(problem, tiny, opts, cache=cache)
+        assert cache._state.dtype == torch.float32 and cache.state_valid
+    # with no regularisation to speak of the answer is rho itself
+    torch.testing.assert_close(r.reflectance, rho, atol=1e-5, rtol=0)
+    # ordinary weights afterwards: the same cache goes back to 16 bits (and starts cold)
+    solve_reflectance(problem, W, opts, cache=cache)
+    assert cache._state.dtype == torch.int16
+
+
 def test_a_solve_that_keeps_no_state_leaves_the_cache_cold():
     # without warm_state the last update's state is not written (and on CPU not stored at
     # all, replayed): the cache must not offer it to a later warm start, which then starts

@@ -54,6 +54,7 @@ __all__ = [
     "bregman_replay",
     "bregman_update",
     "fixed_point_scales",
+    "fixed_point_fits",
     "matting_weights",
 ]
 
@@ -315,16 +316,30 @@ def fixed_point_scales(lam: float) -> tuple[float, float]:
     absolute error of at most ``λ / 65534``. Both are float32 numbers, so that the torch ops
     and the compiled kernel compute the same values.
     """
+    scales = _scales(lam)
+    if scales is None:
+        raise ParameterError(
+            f"Split-Bregman threshold λ = γ / θ = {lam!r} cannot be kept in a 16-bit state "
+            f"(its step λ / {STATE_LEVELS} is not a normal float32 number); keep such a "
+            "state in float32 instead (the pipeline does so by itself)"
+        )
+    return scales
+
+
+def fixed_point_fits(lam: float) -> bool:
+    """Whether a Bregman variable of threshold ``λ`` can be kept in 16-bit fixed point."""
+    return _scales(lam) is not None
+
+
+def _scales(lam: float) -> tuple[float, float] | None:
     import numpy as np
 
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
         step = np.float32(lam / STATE_LEVELS) if lam > 0 else np.float32(0)
         inverse = np.float32(STATE_LEVELS / lam) if lam > 0 else np.float32(np.inf)
-    if not (step > 0 and np.isfinite(step) and np.isfinite(inverse)):
-        raise ParameterError(
-            f"a Bregman threshold of {lam!r} is outside the 16-bit state's range (float32 "
-            f"steps of λ / {STATE_LEVELS}); use a larger term weight gamma, or 0 to drop it"
-        )
+    tiny = np.finfo(np.float32).tiny
+    if not (step >= tiny and np.isfinite(step) and np.isfinite(inverse)):
+        return None
     return float(step), float(inverse)
 
 

@@ -65,6 +65,7 @@ import torch
 from torchiid.core.cache import InputKey, input_key
 from torchiid.core.check import check_finite, check_image, check_same_batch, check_shape
 from torchiid.core.exceptions import ParameterError, ShapeError
+from torchiid.priors import kernels
 from torchiid.priors.reflectance_terms import (
     COLOUR_WEIGHTS,
     REPLAY_STEPS,
@@ -149,13 +150,21 @@ class ReflectanceCache:
         setattr(self, slot, (key, value))
         return value
 
-    def state_buffer(self, like: torch.Tensor, num_offsets: int) -> torch.Tensor:
-        """Storage ``(B, C, K, H, W)`` ``torch.int16`` for the Bregman variable, reused."""
+    def state_buffer(
+        self, like: torch.Tensor, num_offsets: int, fixed_point: bool = True
+    ) -> torch.Tensor:
+        """Storage ``(B, C, K, H, W)`` for the Bregman variable, reused across calls.
+
+        ``torch.int16`` (16-bit fixed point) by default; ``like``'s dtype with
+        ``fixed_point=False`` (thresholds too small for it, see
+        :func:`~torchiid.priors.kernels.fixed_point_fits`).
+        """
         b, c, h, w = like.shape
         shape = (b, c, num_offsets, h, w)
+        dtype = torch.int16 if fixed_point else like.dtype
         st = self._state
-        if st is None or st.shape != shape or st.device != like.device:
-            self._state = st = like.new_empty(shape, dtype=torch.int16)
+        if st is None or st.shape != shape or st.dtype != dtype or st.device != like.device:
+            self._state = st = like.new_empty(shape, dtype=dtype)
             self.state_valid = False
         return st
 
@@ -326,7 +335,11 @@ def build_reflectance_terms(
         gl, gm = weights.gamma_l, weights.gamma_m
         out = None if cache is None else cache.weights_buffer(rho, stencil.num_offsets)
         merged = merged_stencil_affinity(rbar, e_g, stencil, o.t, gl, gm, mask, out=out)
-        state = None if cache is None else cache.state_buffer(rho, stencil.num_offsets)
+        # 16-bit fixed point unless λ = γ / θ is too small for it (float32, as before, then)
+        fixed = kernels.fixed_point_fits(float(gl + gm) / (o.theta * o.value_scale))
+        state = None
+        if cache is not None:
+            state = cache.state_buffer(rho, stencil.num_offsets, fixed_point=fixed)
         warm = o.warm_state and cache is not None and cache.state_valid
         terms["A+B"] = (
             float(gl + gm),
