@@ -78,6 +78,10 @@ def _cases(h: int, w: int):
         ("Bregman update (2nd)", update),
         ("stored update, float32", lambda: f32.bregman_step(z1, f32.state, 0.05, False)),
         ("stored update, int16", lambda: i16.bregman_step(z1, i16.state, 0.05, False)),
+        (
+            "stored update, int16 + gap",
+            lambda: i16.bregman_step(z1, i16.state, 0.05, False, stats=True),
+        ),
     ]
 
 

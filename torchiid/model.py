@@ -79,7 +79,7 @@ class SolveReport:
         iterations: PCG iterations (shading) or outer Bregman iterations (reflectance).
         inner_iterations: CG iterations of all ``z`` steps (reflectance; 0 for shading).
         residual: final relative residual ``‖b − A s‖ / ‖b‖`` (shading) or last relative change
-            of ``z`` (reflectance).
+            of ``z`` (reflectance; with ``bregman_gap_tol``, its last relative duality gap).
         tolerance: the stopping tolerance of that measure.
         cap: the iteration cap (PCG iterations or Bregman iterations).
         converged: the measure fell below the tolerance before the cap.
@@ -473,11 +473,13 @@ def decompose(
             rr = solve_reflectance(problem, refl_w, refl_opt, z0=z0, cache=reflectance_cache)
             refl = rr.reflectance
             sb = rr.solver
+            measure, tolerance = float(sb.change.max()), refl_opt.tol
+            if refl_opt.gap_tol > 0 and sb.gap is not None and bool(sb.gap.isfinite().all()):
+                measure, tolerance = float(sb.gap.max()), refl_opt.gap_tol
             solves.append(
                 SolveReport(
                     "reflectance", k, int(sb.outer_iterations.max()), sb.cg_iterations,
-                    float(sb.change.max()), refl_opt.tol, refl_opt.max_outer,
-                    bool(sb.converged.all()),
+                    measure, tolerance, refl_opt.max_outer, bool(sb.converged.all()),
                 )
             )  # fmt: skip
         else:

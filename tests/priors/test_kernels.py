@@ -423,3 +423,68 @@ def test_affinities_below_the_floor_are_exactly_zero_on_both_paths(torch_ops):
     i = torch.arange(15).view(1, 15)
     pair = pair_affinity(f.contiguous(), 16 + i, 16 + i + 1, t)[0]
     torch.testing.assert_close(pair.double(), want, rtol=2e-4, atol=0)
+
+
+@pytest.mark.parametrize("fixed", [False, True], ids=["float32", "int16"])
+def test_bregman_update_stats_match_torch_ops_and_the_definitions(torch_ops, fixed):
+    """The measured update: the same state and rhs as without, and the right sums."""
+    torch.manual_seed(11)
+    st = Stencil(23, 19, half_offsets(5))
+    w = torch.rand(2, st.num_offsets, 23, 19) * st.valid
+    lam = 0.07
+    shape = (2, 3, st.num_offsets, 23, 19)
+    z0, z1 = torch.rand(2, 3, 23, 19), torch.rand(2, 3, 23, 19)
+
+    def run(stats):
+        state = torch.empty(shape, dtype=torch.int16) if fixed else None
+        term = StencilL1Term(st, w, zero_invalid=False, state=state)
+        b, _, _ = term.bregman_step(z0, None, lam, with_l1=False)
+        before = (b.float() * term.state_step) if fixed else b.clone()
+        out = term.bregman_step(z1, b, lam, with_l1=False, stats=stats)
+        after = (b.float() * term.state_step) if fixed else b.clone()
+        return before, after, out
+
+    before, after, (_, rhs, l1, measured) = run(True)
+    _, plain_after, (_, plain_rhs, _) = run(False)
+    valid = st.valid.expand(2, 3, -1, -1, -1)
+    assert torch.equal(after[valid], plain_after[valid]) and torch.equal(rhs, plain_rhs)
+    _, ref_after, (_, ref_rhs, _, ref) = torch_ops(lambda: run(True))
+    assert torch.equal(after[valid], ref_after[valid]) and torch.allclose(rhs, ref_rhs, atol=1e-6)
+    # the definitions, from dense tensors (float64)
+    # (entries of pairs leaving the image are never written: uninitialised, maybe NaN)
+    start = torch.where(valid, before.double(), 0.0)
+    wz = (w.unsqueeze(1) * st.apply(z1)).double() * valid
+    u = wz + start
+    new = u.clamp(-lam, lam)
+    expect = {
+        "l1": wz.abs(), "primal": (new - start).square(),
+        "apply_sq": wz.square(), "split_sq": (u - new).square(),
+    }  # fmt: skip
+    for name, dense in expect.items():
+        want = dense.flatten(1).sum(1).float()
+        assert torch.allclose(getattr(measured, name), want, rtol=1e-4), name
+        assert torch.allclose(getattr(ref, name), want, rtol=1e-4), name
+    assert torch.allclose(l1, expect["l1"].flatten(1).sum(1).float(), rtol=1e-4)
+    adj = st.adjoint(w.unsqueeze(1).double() * new).float()
+    assert torch.allclose(measured.adjoint, adj, atol=1e-5)
+    assert torch.allclose(ref.adjoint, adj, atol=1e-5)
+
+
+def test_rescaled_int16_state_keeps_the_dual_variable():
+    """A new threshold reads the same ``q`` as the same ``b / λ`` (no pass over the state)."""
+    torch.manual_seed(12)
+    st = Stencil(15, 17, half_offsets(3))
+    w = torch.rand(1, st.num_offsets, 15, 17) * st.valid
+    z = torch.rand(1, 3, 15, 17)
+    dense = StencilL1Term(st, w, zero_invalid=False)
+    storage = torch.empty(1, 3, st.num_offsets, 15, 17, dtype=torch.int16)
+    fixed = StencilL1Term(st, w, zero_invalid=False, state=storage)
+    bd, _, _ = dense.bregman_step(z, None, 0.05, with_l1=False)
+    bq, _, _ = fixed.bregman_step(z, None, 0.05, with_l1=False)
+    bd = dense.rescale_state(bd, 0.05, 0.2)
+    bq2 = fixed.rescale_state(bq, 0.05, 0.2)
+    assert bq2 is bq
+    valid = st.valid.expand(1, 3, -1, -1, -1)
+    decoded = bq.float() * fixed.state_step
+    assert torch.allclose(decoded[valid], bd[valid], atol=0.2 / 32767)
+    assert float(bd[valid].abs().max()) > 0.05  # rescaled beyond the old threshold

@@ -208,3 +208,93 @@ def test_a_term_told_not_to_replay_stores_its_state():
         res = split_bregman(rho, [lean], [0.05], track_objective=False, **kw)
     assert calls == []
     torch.testing.assert_close(res.z, stored.z, rtol=2e-5, atol=2e-5)
+
+
+def _gap_problem(seed=3, h=14, w=15, dtype=D, state=None):
+    g = torch.Generator().manual_seed(seed)
+    st = Stencil.square(h, w, 5)
+    rho = torch.rand(1, 3, h, w, generator=g).to(dtype)
+    local = StencilL1Term(
+        st, torch.rand(1, st.num_offsets, h, w, generator=g).to(dtype), state=state
+    )
+    n = 40
+    i = torch.randint(0, h * w, (1, n), generator=g)
+    j = torch.randint(0, h * w, (1, n), generator=g)
+    pairs = PairL1Term(i, j, torch.rand(1, n, generator=g).to(dtype), h, w)
+    return rho, [local, pairs], [0.05, 0.03]
+
+
+def _excess(res, rho, terms, gammas, j_star):
+    mats = [t.matrix().to_dense().to(rho.dtype) for t in terms]
+    j = float(_objective(res.z.to(rho.dtype), rho, mats, gammas, 1.0))
+    return (j - j_star) / j
+
+
+def test_duality_gap_bounds_the_excess_and_stops_the_solve():
+    rho, terms, gam = _gap_problem()
+    mats = [t.matrix().to_dense() for t in terms]
+    ref = split_bregman(rho, terms, gam, gamma_a=1.0, theta=1.0, **{**TIGHT, "max_outer": 600})
+    j_star = float(_objective(ref.z, rho, mats, gam, 1.0))
+    kw = dict(gamma_a=1.0, theta=1.0, max_outer=3000, cg_tol=1e-10, cg_max_iter=100)
+    iterations = []
+    for tol in (1e-1, 1e-2, 1e-3):
+        res = split_bregman(rho, terms, gam, gap_tol=tol, check_every=1, **kw)
+        excess = _excess(res, rho, terms, gam, j_star)
+        gap = float(res.gap[0])
+        assert bool(res.converged.all()) and gap < tol
+        # the gap is an upper bound of the relative excess over the minimum, not a loose one
+        assert -1e-12 <= excess <= gap
+        iterations.append(int(res.outer_iterations[0]))
+    assert iterations == sorted(iterations) and iterations[0] < iterations[-1]
+
+
+@pytest.mark.parametrize("fixed", [False, True], ids=["float64", "int16"])
+def test_residual_balancing_lowers_a_too_large_penalty(fixed):
+    dtype = torch.float32 if fixed else D
+    kw = dict(gamma_a=1.0, gap_tol=1e-3, max_outer=3000, cg_tol=1e-8, cg_max_iter=20)
+    theta = 40.0
+    rho, terms, gam = _gap_problem(dtype=dtype)
+    # the minimum, certified by the gap (which the test above checks against TIGHT)
+    exact = _gap_problem()[1]
+    mats = [t.matrix().to_dense() for t in exact]
+    ref = split_bregman(
+        rho.double(), exact, gam, gamma_a=1.0, theta=1.0, gap_tol=1e-6, check_every=1,
+        max_outer=3000, cg_tol=1e-12, cg_max_iter=100,
+    )  # fmt: skip
+    assert bool(ref.converged.all())
+    j_star = float(_objective(ref.z, rho.double(), mats, gam, 1.0))
+    plain = split_bregman(rho, terms, gam, theta=theta, **kw)
+    storage = torch.empty(1, 3, terms[0].stencil.num_offsets, 14, 15, dtype=torch.int16)
+    rho, terms, gam = _gap_problem(dtype=dtype, state=storage if fixed else None)
+    balanced = split_bregman(rho, terms, gam, theta=theta, theta_range=(theta / 64, theta), **kw)
+    assert bool(plain.converged.all()) and bool(balanced.converged.all())
+    assert theta / 64 <= balanced.theta < theta
+    # (measured: 45 iterations against 515)
+    assert int(balanced.outer_iterations[0]) < int(plain.outer_iterations[0]) / 2
+    # the multipliers survive the changes of θ: the same minimiser, within the gap
+    excess = _excess(balanced, rho.double(), terms, gam, j_star)
+    assert -2e-6 <= excess <= float(balanced.gap[0]) + 1e-6
+
+
+def test_gap_rule_falls_back_to_the_change_without_measuring_terms():
+    rho, terms, gam = _gap_problem()
+
+    class Opaque:  # a term that cannot measure its updates
+        def __init__(self, inner):
+            self.inner = inner
+
+        def __getattr__(self, name):
+            if name == "bregman_stats":
+                raise AttributeError(name)
+            return getattr(self.inner, name)
+
+    kw = dict(gamma_a=1.0, theta=1.0, max_outer=500, tol=1e-4, cg_max_iter=30)
+    res = split_bregman(rho, [Opaque(terms[0]), terms[1]], gam, gap_tol=1e-3, **kw)
+    ref = split_bregman(rho, terms, gam, **kw)
+    assert bool(res.gap.isnan().all()) and bool(res.converged.all())
+    torch.testing.assert_close(res.z, ref.z)
+    assert res.outer_iterations.tolist() == ref.outer_iterations.tolist()
+    with pytest.raises(ParameterError, match="gap_tol"):
+        split_bregman(rho, terms, gam, gap_tol=0.0)
+    with pytest.raises(ParameterError, match="theta_range"):
+        split_bregman(rho, terms, gam, theta=1.0, gap_tol=1e-3, theta_range=(2.0, 4.0))

@@ -224,7 +224,8 @@ def bregman_update(
     write: bool = False,
     history: list[torch.Tensor] | tuple[()] = (),
     state_step: float = 1.0,
-) -> torch.Tensor:
+    stats: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """A ``StencilL1Term`` Bregman update at ``z``: its right-hand side, ``state`` updated.
 
     Every pair's Bregman variable starts from ``state`` (``read``) or from 0, is replayed
@@ -239,6 +240,11 @@ def bregman_update(
     A ``torch.int16`` state holds the variable in 16-bit fixed point (see
     :func:`fixed_point_scales`): it is read as ``q · state_step`` and written with the step
     of ``lam``.
+
+    ``stats=True`` (no ``history``) also measures the update (``stencil_kernels.
+    _bregman_update_stats``, the same state and right-hand side) and returns ``(rhs, adj,
+    sums)``: ``adj = (W M)ᵀ b'`` ``(B, C, H, W)`` and per image ``(B, 4)`` float64 sums of
+    ``|W M z|``, ``(b' − b)²``, ``(W M z)²`` and ``d²``.
 
     Shape:
         z and history items ``(B, C, H, W)``, weights ``(B, K, H, W)``, state ``(B, C, K, H,
@@ -276,7 +282,7 @@ def bregman_update(
     halo = np.empty((blocks, depth, c, w), dtype=rhs.numpy().dtype)
     lam_t = rhs.numpy().dtype.type(lam)
     args = (
-        zs.numpy(),
+        zs.numpy() if not stats else z.contiguous().numpy(),
         weights.contiguous().numpy(),
         dys,
         dxs,
@@ -288,20 +294,30 @@ def bregman_update(
         inv_out,
         rhs.numpy(),
         halo,
-        block,
     )
+    fn = kernel.bregman_update
+    if stats:
+        if history:
+            raise ValueError("bregman_update(stats=True) takes no history")
+        adj = torch.empty_like(rhs)
+        halo2 = np.empty_like(halo)
+        sums = np.empty((blocks, b, 4), dtype=np.float64)
+        args = (*args, adj.numpy(), halo2, sums)
+        fn = kernel.bregman_update_stats
+    args = (*args, block)
     if n == 1:
-        kernel.bregman_update(*args, 0, blocks)
+        fn(*args, 0, blocks)
     else:
         pool = _executor(n - 1)
-        futures = [
-            pool.submit(kernel.bregman_update, *args, cuts[i], cuts[i + 1]) for i in range(1, n)
-        ]
-        kernel.bregman_update(*args, cuts[0], cuts[1])
+        futures = [pool.submit(fn, *args, cuts[i], cuts[i + 1]) for i in range(1, n)]
+        fn(*args, cuts[0], cuts[1])
         for f in futures:
             f.result()
     kernel.add_halos(rhs.numpy(), halo, block)
-    return rhs
+    if not stats:
+        return rhs
+    kernel.add_halos(adj.numpy(), halo2, block)
+    return rhs, adj, torch.from_numpy(sums.sum(axis=0))
 
 
 #: the largest magnitude of a 16-bit fixed-point Bregman variable: ``λ`` is stored as this

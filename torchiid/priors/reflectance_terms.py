@@ -63,6 +63,7 @@ __all__ = [
     "pair_affinity",
     "StencilL1Term",
     "PairL1Term",
+    "BregmanStats",
     "REPLAY_STEPS",
     "MIN_EXPONENT",
     "data_term",
@@ -258,12 +259,43 @@ def data_term(z: torch.Tensor, rho: torch.Tensor, gamma_a: float = 1.0) -> torch
     return gamma_a * (z - rho).square().flatten(1).sum(dim=1)
 
 
+@dataclass(frozen=True)
+class BregmanStats:
+    """What one Bregman update measured, per image (``bregman_step(..., stats=True)``).
+
+    For the duality gap and the residual balancing of
+    :func:`~torchiid.solvers.split_bregman.split_bregman`: the update at ``z`` from ``b`` gives
+    ``u = W M z + b``, ``b' = clamp(u, −λ, λ)`` and ``d = u − b'``.
+
+    Attributes:
+        l1: ``‖W M z‖₁`` ``(B,)``.
+        primal: ``‖b' − b‖² = ‖W M z − d‖²`` (the squared primal residual) ``(B,)``.
+        apply_sq: ``‖W M z‖²`` ``(B,)``.
+        split_sq: ``‖d‖²`` ``(B,)``.
+        adjoint: ``(W M)ᵀ b'`` ``(B, C, H, W)``; ``b' / λ`` is a feasible dual point.
+    """
+
+    l1: torch.Tensor
+    primal: torch.Tensor
+    apply_sq: torch.Tensor
+    split_sq: torch.Tensor
+    adjoint: torch.Tensor
+
+
+def _sums(x: torch.Tensor) -> torch.Tensor:
+    return x.flatten(1).sum(dim=1)
+
+
 class _L1Term:
     """Shared Split-Bregman step for a weighted difference operator ``W M``.
 
     Subclasses provide ``apply`` (``W M z``), ``adjoint`` (``(W M)ᵀ y``), ``normal_matvec``
     (``Mᵀ W² M z``), ``normal_diagonal`` and ``init_state``.
     """
+
+    #: ``bregman_step`` takes ``stats=True`` (:class:`BregmanStats`) and ``rescale_state``
+    #: exists: Split-Bregman may stop on the duality gap and change its penalty
+    bregman_stats = True
 
     def apply(self, z: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -276,8 +308,13 @@ class _L1Term:
         return self.apply(z).abs().flatten(1).sum(dim=1)
 
     def bregman_step(
-        self, z: torch.Tensor, b: torch.Tensor | None, lam: float, with_l1: bool = True
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        self,
+        z: torch.Tensor,
+        b: torch.Tensor | None,
+        lam: float,
+        with_l1: bool = True,
+        stats: bool = False,
+    ):
         """One Bregman update (Goldstein & Osher 2009) at ``z``.
 
         With ``u = W M z + b``: ``d = shrink(u, λ)``, ``b ← u − d = clamp(u, −λ, λ)`` (in place),
@@ -286,12 +323,32 @@ class _L1Term:
 
         Returns:
             ``(b, rhs (B, C, H, W), ‖W M z‖₁ (B,))``; the last is ``None`` unless ``with_l1``.
+            With ``stats=True`` a fourth item, the update's :class:`BregmanStats`.
         """
         wz = self.apply(z)
-        l1 = wz.abs().flatten(1).sum(dim=1) if with_l1 else None
-        u = wz if b is None else wz.add_(b)
+        l1 = _sums(wz.abs()) if with_l1 or stats else None
+        measured = None
+        if stats:
+            old = torch.zeros_like(wz) if b is None else b.clone()
+            u = wz + old
+            new = u.clamp(-lam, lam)
+            measured = BregmanStats(
+                l1, _sums((new - old).square_()), _sums(wz.square()),
+                _sums((u - new).square_()), self.adjoint(new),
+            )  # fmt: skip
+            wz = u
+        u = wz if b is None or stats else wz.add_(b)
         b = u.clamp(-lam, lam) if b is None else b.copy_(u.clamp(-lam, lam))
-        return b, self.adjoint(u.sub_(b).sub_(b)), l1
+        rhs = self.adjoint(u.sub_(b).sub_(b))
+        return (b, rhs, l1, measured) if stats else (b, rhs, l1)
+
+    def rescale_state(self, b: torch.Tensor | None, lam: float, new_lam: float):
+        """The state ``b`` written at threshold ``lam`` for ``new_lam``: ``b · new_lam / lam``.
+
+        Keeps the dual variable ``b / λ`` (Split-Bregman's penalty ``θ = γ / λ`` changes, the
+        Lagrange multiplier ``θ b`` stays). In place; returns the state.
+        """
+        return None if b is None else b.mul_(new_lam / lam)
 
 
 #: earlier updates a replayed Bregman state (:meth:`StencilL1Term.bregman_step`) recomputes
@@ -457,7 +514,8 @@ class StencilL1Term(_L1Term):
         lam: float,
         with_l1: bool = True,
         final: bool = False,
-    ) -> tuple[torch.Tensor | _Replay | None, torch.Tensor, torch.Tensor | None]:
+        stats: bool = False,
+    ):
         """Fused per-offset version of :meth:`_L1Term.bregman_step` (``b`` updated in place).
 
         The differences of each offset are written into one scratch buffer, so the loop
@@ -483,11 +541,15 @@ class StencilL1Term(_L1Term):
         ops, kept for GPUs, autograd and ``with_l1=True``, make about ten per offset). A
         ``torch.int16`` state (see the class notes) halves what that pass moves: 19.0 ms
         against 26.2 ms per update at 512×384 on 2 threads.
+
+        ``stats=True`` also returns the update's :class:`BregmanStats` (a fourth item), from
+        the same pass on the compiled path (``kernels.bregman_update(stats=True)``).
         """
         replayable = (
             not self.keep_state
             and self.replay
             and not with_l1
+            and not stats
             and (b is None or isinstance(b, _Replay))
             and z.shape[0] == self.weights.shape[0]
             and kernels.usable(z, self.weights, offsets=self.stencil.offsets)
@@ -518,14 +580,29 @@ class StencilL1Term(_L1Term):
             fresh = b is None
             if store and fresh:
                 b = self._state_storage(z)
-            rhs = kernels.bregman_update(
+            out = kernels.bregman_update(
                 z, self.weights, self.stencil.offsets, lam, state=b, read=not fresh,
-                write=store, state_step=self.state_step or 1.0,
+                write=store, state_step=self.state_step or 1.0, stats=stats,
             )  # fmt: skip
             if store and b.dtype == torch.int16:
                 self.state_step = kernels.fixed_point_scales(lam)[0]
-            return b, rhs, None
-        return self._torch_step(z, b, lam, with_l1, final)
+            if not stats:
+                return b, out, None
+            rhs, adj, sums = out
+            sums = sums.to(z.dtype).unbind(1)
+            return b, rhs, sums[0], BregmanStats(sums[0], sums[1], sums[2], sums[3], adj)
+        return self._torch_step(z, b, lam, with_l1, final, stats=stats)
+
+    def rescale_state(self, b, lam: float, new_lam: float):
+        """:meth:`_L1Term.rescale_state`; an int16 state only changes its step (no pass)."""
+        if isinstance(b, _Replay):
+            compiled = kernels.usable(b.history[-1], self.weights, offsets=self.stencil.offsets)
+            b = self._materialise(b, compiled)
+        if b is not None and b.dtype == torch.int16:
+            # q = b / λ · 32767 is the dual variable: read it with the step of the new λ
+            self.state_step = kernels.fixed_point_scales(new_lam)[0]
+            return b
+        return super().rescale_state(b, lam, new_lam)
 
     def _state_storage(self, z: torch.Tensor) -> torch.Tensor:
         """Storage ``(B, C, K, H, W)`` for a fresh state: ``state`` when it fits, else new."""
@@ -566,10 +643,14 @@ class StencilL1Term(_L1Term):
         with_l1: bool,
         final: bool,
         float_state: bool = False,
-    ) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor | None]:
+        stats: bool = False,
+    ):
         rhs = torch.zeros_like(z)
         scratch = torch.empty_like(z)
-        l1 = z.new_zeros(z.shape[0]) if with_l1 else None
+        l1 = z.new_zeros(z.shape[0]) if with_l1 or stats else None
+        if stats:
+            sums = z.new_zeros(3, z.shape[0])  # ‖b' − b‖², ‖W M z‖², ‖d‖²
+            adj = torch.zeros_like(z)
         fresh = b is None
         store = not (final and not self.keep_state)
         self.state_written = store
@@ -585,13 +666,24 @@ class StencilL1Term(_L1Term):
             u = torch.sub(z[:, :, yi, xi], z[:, :, yj, xj], out=scratch[:, :, yi, xi]).mul_(wk)
             if l1 is not None:
                 l1 += u.abs().flatten(1).sum(dim=1)
+            if stats:
+                sums[1] += _sums(u.square())
+            old = None
             if not fresh:
                 bk = b[:, :, k, yi, xi]
-                u += bk.to(z.dtype).mul_(step_in) if fixed else bk
+                old = bk.to(z.dtype).mul_(step_in) if fixed else bk
+                if stats and old is bk:
+                    old = bk.clone()  # the new b overwrites it
+                u += old
             # the new b, written straight into the state (or into scratch when not kept or
             # stored in fixed point)
             bk = b[:, :, k, yi, xi] if store and not fixed else clamped[:, :, yi, xi]
             torch.clamp(u, -lam, lam, out=bk)
+            if stats:
+                sums[0] += _sums(bk.square() if old is None else (bk - old).square_())
+                sums[2] += _sums((u - bk).square_())
+                adj[:, :, yi, xi].addcmul_(bk, wk)
+                adj[:, :, yj, xj].addcmul_(bk, wk, value=-1)
             if store and fixed:
                 b[:, :, k, yi, xi] = bk.mul(inv_out).round_()
             e = u.sub_(bk, alpha=2.0)  # d - b; (W M)^T scatters w * (d - b) to i and j
@@ -599,6 +691,8 @@ class StencilL1Term(_L1Term):
             rhs[:, :, yj, xj].addcmul_(e, wk, value=-1)
         if store and fixed:
             self.state_step = step_out
+        if stats:
+            return b, rhs, l1, BregmanStats(l1, sums[0], sums[1], sums[2], adj)
         return b, rhs, l1
 
     def matrix(self) -> torch.Tensor:

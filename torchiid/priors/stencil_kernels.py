@@ -24,6 +24,7 @@ __all__ = [
     "affinity_exponent",
     "scale_by_factor",
     "bregman_update",
+    "bregman_update_stats",
     "add_halos",
 ]
 
@@ -281,11 +282,7 @@ def _bregman_update(
         r0 = blk * block
         r1 = min(rows, r0 + block)
         halo[blk] = 0.0
-        for r in range(r0, r1):
-            b = r // h
-            y = r - b * h
-            for c in range(nc):
-                rhs[b, c, y, :] = 0.0
+        _zero_rows(rhs, r0, r1)
         for r in range(r0, r1):
             b = r // h
             y = r - b * h
@@ -304,14 +301,7 @@ def _bregman_update(
                     else:
                         oj = halo[blk, rj - r1, c, x0 + dx : x0 + dx + n]
                     bb = bbuf[:n]
-                    if read and quant:
-                        sq = state[b, c, k, y, x0 : x0 + n]
-                        for t in range(n):
-                            bb[t] = sq[t] * scale_in
-                    elif read:
-                        bb[:] = state[b, c, k, y, x0 : x0 + n]
-                    else:
-                        bb[:] = 0.0
+                    _read_state(state, b, c, k, y, x0, bb, read, quant, scale_in)
                     for s in range(m):
                         zi = zs[s, b, c, y, x0 : x0 + n]
                         zj = zs[s, b, c, y + dy, x0 + dx : x0 + dx + n]
@@ -347,6 +337,121 @@ def _bregman_update(
                         oi[t] += bb[t]
                     for t in range(n):
                         oj[t] -= bb[t]
+    return rhs
+
+
+def _bregman_update_stats(
+    z,
+    w,
+    dys,
+    dxs,
+    lam,
+    state,
+    read,
+    write,
+    scale_in,
+    inv_out,
+    rhs,
+    halo,
+    adj,
+    halo2,
+    stats,
+    block,
+    k0,
+    k1,
+):  # pragma: no cover - compiled
+    """:func:`_bregman_update` at ``z`` (no replay) that also measures the update.
+
+    Besides the new state and ``rhs`` (the same values as :func:`_bregman_update`), it adds
+    ``w b'`` to ``adj_i`` and subtracts it from ``adj_j`` (``adj = (W M)ᵀ b'``, rows after the
+    block into ``halo2[blk]`` like ``rhs``'s into ``halo[blk]``), and sums per block and image
+    into ``stats[blk, b]`` (float64): ``Σ |w (z_i − z_j)|``, ``Σ (b' − b)²`` (the primal
+    residual ``W M z − d``), ``Σ (w (z_i − z_j))²`` and ``Σ d²``. For the duality gap and the
+    residual balancing of :func:`torchiid.solvers.split_bregman.split_bregman`. The sums run
+    per column in the arrays' dtype over a row's pairs (so the loops vectorise), then per row
+    in float64.
+    """
+    nb, nc, h, wd = z.shape
+    rows = nb * h
+    nk = dys.shape[0]
+    bbuf = np.empty(wd, dtype=z.dtype)
+    cbuf = np.empty(wd, dtype=z.dtype)
+    nbuf = np.empty(wd, dtype=z.dtype)
+    acc = np.empty((4, wd), dtype=z.dtype)
+    quant = inv_out > 0
+    for blk in range(k0, k1):
+        r0 = blk * block
+        r1 = min(rows, r0 + block)
+        halo[blk] = 0.0
+        halo2[blk] = 0.0
+        stats[blk] = 0.0
+        _zero_rows(rhs, r0, r1)
+        _zero_rows(adj, r0, r1)
+        for r in range(r0, r1):
+            b = r // h
+            y = r - b * h
+            acc[:] = 0.0
+            a1 = acc[0]
+            a2 = acc[1]
+            a3 = acc[2]
+            a4 = acc[3]
+            for k in range(nk):
+                dy = dys[k]
+                dx = dxs[k]
+                if y + dy >= h:
+                    continue
+                x0, n = _span(dx, wd)
+                wr = w[b, k, y, x0 : x0 + n]
+                rj = r + dy
+                for c in range(nc):
+                    oi = rhs[b, c, y, x0 : x0 + n]
+                    ai = adj[b, c, y, x0 : x0 + n]
+                    if rj < r1:
+                        oj = rhs[b, c, y + dy, x0 + dx : x0 + dx + n]
+                        aj = adj[b, c, y + dy, x0 + dx : x0 + dx + n]
+                    else:
+                        oj = halo[blk, rj - r1, c, x0 + dx : x0 + dx + n]
+                        aj = halo2[blk, rj - r1, c, x0 + dx : x0 + dx + n]
+                    bb = bbuf[:n]
+                    cb = cbuf[:n]
+                    nw = nbuf[:n]
+                    _read_state(state, b, c, k, y, x0, bb, read, quant, scale_in)
+                    zi = z[b, c, y, x0 : x0 + n]
+                    zj = z[b, c, y + dy, x0 + dx : x0 + dx + n]
+                    for t in range(n):
+                        wt = wr[t]
+                        a = (zi[t] - zj[t]) * wt
+                        u = a + bb[t]
+                        bn = min(max(u, -lam), lam)
+                        a1[t] += abs(a)
+                        a3[t] += a * a
+                        e = bn - bb[t]
+                        a2[t] += e * e
+                        e = u - bn
+                        a4[t] += e * e
+                        nw[t] = bn
+                        cb[t] = bn * wt
+                        bb[t] = (u - (bn + bn)) * wt
+                    if write and quant:
+                        sr = state[b, c, k, y, x0 : x0 + n]
+                        for t in range(n):
+                            sr[t] = np.rint(nw[t] * inv_out)
+                    elif write:
+                        sr = state[b, c, k, y, x0 : x0 + n]
+                        sr[:] = nw
+                    for t in range(n):
+                        oi[t] += bb[t]
+                    for t in range(n):
+                        oj[t] -= bb[t]
+                    for t in range(n):
+                        ai[t] += cb[t]
+                    for t in range(n):
+                        aj[t] -= cb[t]
+            for q in range(4):
+                total = 0.0
+                for t in range(wd):
+                    total += acc[q, t]
+                stats[blk, b, q] += total
     return rhs
 
 
@@ -430,6 +535,31 @@ def _scale_by_factor(out, sem, a_l, a_m, r0, r1):  # pragma: no cover - compiled
 
 
 @njit(inline="always")
+def _zero_rows(out, r0, r1):  # pragma: no cover - compiled
+    """Zero rows ``r0 .. r1 − 1`` (of the batch's ``B·H``) of ``out`` ``(B, C, H, W)``."""
+    h = out.shape[2]
+    for r in range(r0, r1):
+        b = r // h
+        y = r - b * h
+        for c in range(out.shape[1]):
+            out[b, c, y, :] = 0.0
+
+
+@njit(inline="always")
+def _read_state(state, b, c, k, y, x0, bb, read, quant, scale_in):  # pragma: no cover
+    """A run of ``len(bb)`` Bregman variables from ``state`` (decoded when fixed point), or 0."""
+    n = bb.shape[0]
+    if read and quant:
+        sq = state[b, c, k, y, x0 : x0 + n]
+        for t in range(n):
+            bb[t] = sq[t] * scale_in
+    elif read:
+        bb[:] = state[b, c, k, y, x0 : x0 + n]
+    else:
+        bb[:] = 0.0
+
+
+@njit(inline="always")
 def _span(dx, wd):  # pragma: no cover - compiled
     """``(x0, n)``: the first column and the count of pixels ``i`` whose ``i + dx`` is inside."""
     x0 = max(0, -dx)
@@ -452,6 +582,7 @@ gather_parallel = njit(parallel=True, nogil=True, cache=True, boundscheck=False)
 matting_weights = _jit(_matting_weights)
 # IEEE semantics: the replayed Bregman variable is the one the torch path would have stored
 bregman_update = njit(nogil=True, cache=True, boundscheck=False)(_bregman_update)
+bregman_update_stats = njit(nogil=True, cache=True, boundscheck=False)(_bregman_update_stats)
 add_halos = njit(nogil=True, cache=True, boundscheck=False)(_add_halos)
 # the window statistics keep IEEE semantics, as the torch ops that they replace
 matting_windows = njit(nogil=True, cache=True, boundscheck=False)(_matting_windows)

@@ -17,6 +17,13 @@ a good ``z0`` is kept rather than first smoothed away. Each image stops when
 ``‖z_new − z‖ / ‖z‖ < tol`` (its ``z`` is then frozen) or after ``max_outer`` iterations; a batch
 gives the images' one-by-one results.
 
+Duality gap (``gap_tol``). The clamped Bregman variable gives a dual-feasible point ``p_k = b_k /
+λ_k`` (``|p_k| <= 1``), and Eq. 12's dual ``D(p) = ⟨g, ρ⟩ − ‖g‖² / (4γ_a)``, ``g = Σ_k γ_k (W_k
+M_k)ᵀ p_k``, bounds the minimum from below: ``(J(z) − D(p)) / J(z)`` bounds how far ``J(z)`` is
+above it, relatively, whatever ``θ`` and the start. Measured every few iterations from the
+Bregman update's own pass (``bregman_step(..., stats=True)``), it replaces the change of ``z``
+as the stopping rule, and its residuals drive residual balancing of ``θ`` (``theta_range``).
+
 Terms are duck-typed (see :mod:`torchiid.priors.reflectance_terms`):
 ``bregman_step(z, b, λ, with_l1) -> (b, rhs, l1)`` (``b=None``: the zero state),
 ``normal_matvec(z)``, ``normal_diagonal()``, ``l1(z)``; optionally ``initial_state`` (a
@@ -45,6 +52,9 @@ __all__ = ["SplitBregmanResult", "split_bregman"]
 
 logger = logging.getLogger(__name__)
 
+#: the duality gap is relative to ``max(J(z), GAP_FLOOR · J(0))`` (``J(0) = γ_a ‖ρ‖²``)
+GAP_FLOOR = 1e-3
+
 
 @dataclass(frozen=True)
 class SplitBregmanResult:
@@ -59,6 +69,9 @@ class SplitBregmanResult:
         change: ``(B,)`` last relative change of ``z``.
         converged: ``(B,)`` bool, whether the relative change fell below ``tol``.
         cg_residual: ``(B,)`` largest relative CG residual of the last ``z`` step over channels.
+        gap: ``(B,)`` the last measured relative duality gap ``(J(z) − D(p)) / J(z)`` (an upper
+            bound on ``z``'s relative excess over the minimum; ``nan`` where none was measured).
+        theta: the penalty ``θ`` of the last iteration (it changes with ``theta_range``).
     """
 
     z: torch.Tensor
@@ -68,6 +81,8 @@ class SplitBregmanResult:
     change: torch.Tensor
     converged: torch.Tensor
     cg_residual: torch.Tensor
+    gap: torch.Tensor | None = None
+    theta: float | None = None
 
 
 def split_bregman(
@@ -83,6 +98,10 @@ def split_bregman(
     cg_tol: float = 1e-3,
     cg_max_iter: int = 10,
     track_objective: bool = True,
+    gap_tol: float | None = None,
+    check_every: int = 5,
+    theta_range: tuple[float, float] | None = None,
+    balance: tuple[float, float] = (10.0, 1.0),
 ) -> SplitBregmanResult:
     """Solve ``min_z γ_a‖z − ρ‖² + Σ_k γ_k ‖W_k M_k z‖₁`` by Split-Bregman (Eqs. 12–13).
 
@@ -100,6 +119,21 @@ def split_bregman(
             warning is emitted; the residual is reported).
         track_objective: evaluate ``J`` after every iteration (the L1 norms cost about a third
             of a Bregman update; the pipeline turns this off).
+        gap_tol: stop each image when its relative duality gap falls below this, measured
+            every ``check_every`` iterations, instead of on the change of ``z`` (``tol`` is
+            then unused). The gap is ``J(z) − D(p)`` over ``max(J(z), GAP_FLOOR · J(0))``:
+            below a thousandth of the data's energy ``J(0) = γ_a ‖ρ‖²`` it is absolute.
+            Needs terms with ``bregman_stats`` (the difference terms); with others the
+            change rule applies.
+        check_every: iterations between two measurements of the gap.
+        theta_range: ``(θ_lo, θ_hi)``: with ``gap_tol``, residual balancing (Boyd et al. 2011,
+            §3.4.1) at every measurement: halve ``θ`` (down to ``θ_lo``) when the relative dual
+            residual exceeds ``balance[0]`` times the relative primal one, double it (up to
+            ``θ_hi``) when the primal one exceeds ``balance[1]`` times the dual one. The
+            Lagrange multipliers ``θ b`` are kept across a change.
+        balance: ``(lower, raise)``, the residual ratios that change ``θ``. The default
+            lowers ``θ`` only on strong evidence and raises it back as soon as the primal
+            residual dominates: a small penalty gains most early and can slow the tail.
 
     Returns:
         :class:`SplitBregmanResult`.
@@ -117,6 +151,12 @@ def split_bregman(
         raise ParameterError(f"term weights gamma must be >= 0, got {list(gammas)}")
     if not gamma_a > 0 or not theta > 0:
         raise ParameterError(f"gamma_a and theta must be > 0, got {gamma_a} and {theta}")
+    if gap_tol is not None and not (gap_tol > 0 and check_every >= 1):
+        raise ParameterError(f"need gap_tol > 0 and check_every >= 1, got {gap_tol}, {check_every}")
+    if theta_range is not None and not (0 < theta_range[0] <= theta <= theta_range[1]):
+        raise ParameterError(
+            f"theta_range must hold 0 < lo <= theta <= hi, got {theta_range}, theta {theta}"
+        )
     if max_outer < 0 or cg_max_iter < 1:
         raise ParameterError(
             f"need max_outer >= 0, cg_max_iter >= 1; got {max_outer}, {cg_max_iter}"
@@ -129,37 +169,57 @@ def split_bregman(
     bsz, c, h, w = rho.shape
     active_terms = [(t, g) for t, g in zip(terms, gammas, strict=True) if g > 0]
     lams = [g / theta for _, g in active_terms]
+    gap_mode = gap_tol is not None and all(
+        getattr(t, "bregman_stats", False) for t, _ in active_terms
+    )
+    if gap_tol is not None and not gap_mode:
+        logger.debug("split-bregman: a term measures no duality gap; stopping on the change")
+    data_rhs = 2.0 * gamma_a * rho
+    floor = GAP_FLOOR * gamma_a * rho.square().flatten(1).sum(dim=1) if gap_mode else None
 
-    def bregman(z: torch.Tensor, states: list[torch.Tensor | None], final: bool):
-        rhs = 2.0 * gamma_a * rho
+    def bregman(z: torch.Tensor, states: list[torch.Tensor | None], final: bool, stats: bool):
+        rhs = data_rhs.clone()
         obj = gamma_a * (z - rho).square().flatten(1).sum(dim=1) if track_objective else None
+        measured = []
         for n, ((term, g), lam) in enumerate(zip(active_terms, lams, strict=True)):
             # final: no later step reads this state; a term that keeps no state for a later
             # solve need not store it (StencilL1Term: 60 planes per channel left unwritten)
             kw = {"final": True} if final and getattr(term, "skips_final_state", False) else {}
-            states[n], r, l1 = term.bregman_step(z, states[n], lam, with_l1=track_objective, **kw)
+            if stats:
+                kw["stats"] = True
+            out = term.bregman_step(z, states[n], lam, with_l1=track_objective, **kw)
+            states[n], r, l1 = out[:3]
+            if stats:
+                measured.append((g, out[3]))
             rhs = rhs.add_(r, alpha=theta)
             if track_objective:
                 obj = obj + g * l1
-        return rhs, obj
+        return rhs, obj, measured
 
     # None: the zero state; a term's initial_state (e.g. the previous alternation's) warm-starts
     states: list[torch.Tensor | None] = [getattr(t, "initial_state", None) for t, _ in active_terms]
-    rhs, obj = bregman(z, states, final=max_outer <= 1)
+    rhs, obj, _ = bregman(z, states, final=max_outer <= 1, stats=False)
     objective = [obj] if track_objective else None
     outer = torch.zeros(bsz, dtype=torch.long, device=rho.device)
     change = torch.zeros(bsz, dtype=rho.dtype, device=rho.device)
     cg_res = torch.zeros(bsz, dtype=rho.dtype, device=rho.device)
+    gap = torch.full((bsz,), float("nan"), dtype=rho.dtype, device=rho.device)
     active = torch.ones(bsz, dtype=torch.bool, device=rho.device)
     if not active_terms:
         # no L1 term: the minimiser is rho itself
         objective = obj.unsqueeze(0) if track_objective else None
         return SplitBregmanResult(
-            rho.clone(), outer, 0, objective, change, torch.ones_like(active), cg_res
-        )
+            rho.clone(), outer, 0, objective, change, torch.ones_like(active), cg_res,
+            torch.zeros_like(gap), theta,
+        )  # fmt: skip
 
-    diag = 2.0 * gamma_a + theta * sum(t.normal_diagonal() for t, _ in active_terms)
-    precond = (1.0 / diag).expand(bsz, c, h, w).reshape(bsz * c, 1, h, w)
+    degree = sum(t.normal_diagonal() for t, _ in active_terms)
+
+    def preconditioner() -> torch.Tensor:
+        diag = 2.0 * gamma_a + theta * degree
+        return (1.0 / diag).expand(bsz, c, h, w).reshape(bsz * c, 1, h, w)
+
+    precond = preconditioner()
 
     def matvec(x: torch.Tensor) -> torch.Tensor:
         xi = x.view(bsz, c, h, w)
@@ -168,6 +228,9 @@ def split_bregman(
             y = t.normal_matvec(xi)  # a fresh tensor: accumulate in place
             out = y if out is None else out.add_(y)
         return out.mul_(theta).add_(xi, alpha=2.0 * gamma_a).view(bsz * c, 1, h, w)
+
+    def sums(x: torch.Tensor) -> torch.Tensor:
+        return x.flatten(1).sum(dim=1)
 
     cg_total = 0
     last = None  # the last z step's (rhs, PCGResult), for its residual
@@ -196,6 +259,7 @@ def split_bregman(
         change = torch.where(active, step, change)
         z = torch.where(active.view(-1, 1, 1, 1), z_new, z)
         outer = outer + active.long()
+        check = gap_mode and (it + 1) % check_every == 0
         if it == max_outer - 1:
             # last iteration: only the objective is needed, skip the Bregman update
             obj_new = None
@@ -204,20 +268,90 @@ def split_bregman(
                 for t, g in active_terms:
                     obj_new = obj_new + g * t.l1(z)
         else:
-            rhs, obj_new = bregman(z, states, final=it == max_outer - 2)
+            rhs, obj_new, measured = bregman(z, states, final=it == max_outer - 2, stats=check)
+            if check:
+                # the duality gap: p_k = b_k / λ_k is dual feasible (|p| <= 1), and with
+                # g = Σ γ_k (W_k M_k)ᵀ p_k = θ Σ (W_k M_k)ᵀ b_k the dual objective is
+                # D(p) = min_z γ_a‖z − ρ‖² + ⟨g, z⟩ = ⟨g, ρ⟩ − ‖g‖² / (4 γ_a) <= J(z*)
+                g_adj = theta * sum(m.adjoint for _, m in measured)
+                primal_obj = gamma_a * sums((z - rho).square()) + sum(g * m.l1 for g, m in measured)
+                dual_obj = sums(g_adj * rho) - sums(g_adj.square()) / (4.0 * gamma_a)
+                # relative to J(z), but at least to GAP_FLOOR · J(0) = GAP_FLOOR · γ_a‖ρ‖²: an
+                # objective far below the data's own energy (a nearly flat image) leaves a gap
+                # that float32 sums do not resolve relatively (a two-tone image: J ≈ 6e-6 J(0),
+                # where the relative gap stalled at 9%)
+                scale = torch.maximum(primal_obj, floor).clamp_min(torch.finfo(rho.dtype).tiny)
+                now = (primal_obj - dual_obj) / scale
+                gap = torch.where(active, now, gap)
+                logger.debug("split-bregman: iteration %d, duality gap %s", it + 1, now.tolist())
+                if theta_range is not None:
+                    new_theta = _balance(
+                        z, rho, gamma_a, g_adj, measured, active & (now >= gap_tol),
+                        theta, theta_range, balance,
+                    )  # fmt: skip
+                    if new_theta != theta:
+                        # keep the multipliers θ b: b ← b θ_old / θ_new, and the z step's
+                        # right-hand side θ Σ Mᵀ W (d − b) for the new θ and b
+                        ratio = new_theta / theta
+                        theta = new_theta
+                        new_lams = [g / theta for _, g in active_terms]
+                        for n, (t, _) in enumerate(active_terms):
+                            states[n] = t.rescale_state(states[n], lams[n], new_lams[n])
+                        lams = new_lams
+                        rhs = rhs.sub_(data_rhs).mul_(ratio).add_(data_rhs)
+                        rhs = rhs.add_(g_adj, alpha=ratio - 1.0)
+                        precond = preconditioner()
+                        last = None
+                        logger.debug("split-bregman: θ -> %g", theta)
         if track_objective:
             obj = torch.where(active, obj_new, obj)
             objective.append(obj)
-        active = active & (change >= tol)
+        if gap_mode:
+            if check:
+                active = active & (gap >= gap_tol)
+        else:
+            active = active & (change >= tol)
         logger.debug("split-bregman: iteration %d, relative change %s", it + 1, change.tolist())
         if not bool(active.any()):
             break
+    converged = gap < gap_tol if gap_mode else change < tol
     return SplitBregmanResult(
         z=z,
         outer_iterations=outer,
         cg_iterations=cg_total,
         objective=torch.stack(objective) if track_objective else None,
         change=change,
-        converged=change < tol,
+        converged=converged,
         cg_residual=cg_res,
+        gap=gap,
+        theta=theta,
     )
+
+
+def _balance(z, rho, gamma_a, g_adj, measured, which, theta, theta_range, balance) -> float:
+    """Residual balancing (Boyd et al. 2011, §3.4.1) on relative residuals, over ``which``.
+
+    Primal: ``‖W M z − d‖ / max(‖W M z‖, ‖d‖)``; dual: the stationarity residual of the
+    Lagrangian, ``‖2γ_a (z − ρ) + g‖ / ‖g‖`` (``g = θ Σ (W M)ᵀ b``). ``θ`` halves when the dual
+    one is ``balance[0]`` times the primal one, doubles when the primal one is ``balance[1]``
+    times the dual one, within ``theta_range``.
+    """
+    if not bool(which.any()):
+        return theta
+    sel = which.nonzero().flatten()
+    primal = sum(m.primal for _, m in measured)[sel].sum().sqrt()
+    scale = torch.maximum(
+        sum(m.apply_sq for _, m in measured)[sel].sum(),
+        sum(m.split_sq for _, m in measured)[sel].sum(),
+    ).sqrt()
+    dual = (2.0 * gamma_a * (z - rho) + g_adj)[sel].square().sum().sqrt()
+    dual_scale = g_adj[sel].square().sum().sqrt()
+    r = float(primal / scale.clamp_min(1e-30))
+    s = float(dual / dual_scale.clamp_min(1e-30))
+    logger.debug("split-bregman: relative residuals primal %.3g, dual %.3g at θ %g", r, s, theta)
+    lower, raise_ = balance
+    if s > lower * r:
+        return max(0.5 * theta, theta_range[0])
+    if r > raise_ * s:
+        return min(2.0 * theta, theta_range[1])
+    return theta

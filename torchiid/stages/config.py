@@ -353,6 +353,11 @@ class ReflectanceOptions:
             previous alternation's dual is close to the next one's.
         track_objective: record Eq. 12's value after every Bregman iteration.
         eps: floor of ``Σ_c R_c`` in the shading ratio.
+        gap_tol: stop Split-Bregman when its relative duality gap (an upper bound on how far
+            Eq. 12's objective is above its minimum, relatively) falls below this, measured
+            every 5 iterations; 0: stop on the change of ``z`` (``tol``).
+        theta_floor: with ``gap_tol``, residual balancing may lower ``θ`` down to ``θ ·
+            theta_floor`` (1: a fixed ``θ``); a warm-started solve starts at the last solve's.
     """
 
     theta: float = 40.0
@@ -370,8 +375,15 @@ class ReflectanceOptions:
     warm_state: bool = False
     track_objective: bool = True
     eps: float = 1e-4
+    gap_tol: float = 0.0
+    theta_floor: float = 1.0
 
     def __post_init__(self) -> None:
+        if not self.gap_tol >= 0 or not 0 < self.theta_floor <= 1:
+            raise ParameterError(
+                f"need gap_tol >= 0 and 0 < theta_floor <= 1, got {self.gap_tol}, "
+                f"{self.theta_floor}"
+            )
         if not self.t > 0 or self.t_g < 0:
             raise ParameterError(f"deviations t > 0 and t_g >= 0 needed, got {self.t}, {self.t_g}")
         if self.window < 3 or self.window % 2 == 0:

@@ -126,6 +126,8 @@ class ReflectanceCache:
         state_valid: the storage holds the last solve's Bregman variable of the local term
             (what ``ReflectanceOptions.warm_state`` starts the next solve from).
         state_step: the step of that variable's fixed-point values.
+        theta: the Split-Bregman penalty that variable was written at (it changes with
+            ``ReflectanceOptions.theta_floor``; the next warm solve starts there).
     """
 
     semantic: tuple[InputKey, torch.Tensor] | None = None
@@ -133,6 +135,7 @@ class ReflectanceCache:
     hits: int = 0
     state_valid: bool = False
     state_step: float | None = None
+    theta: float | None = None
     _state: torch.Tensor | None = None
     _weights: torch.Tensor | None = None
 
@@ -412,6 +415,11 @@ def solve_reflectance(
         mask ``(B, 1, H, W)`` bool.
     """
     o = options
+    theta = o.theta * o.value_scale
+    if o.gap_tol > 0 and o.theta_floor < 1 and o.warm_state and cache is not None:
+        if cache.state_valid and cache.theta is not None:
+            # the warm state's multipliers θ b were reached at this penalty: go on from it
+            theta = min(max(cache.theta, theta * o.theta_floor), theta)
     built = build_reflectance_terms(problem, weights, options, cache)
     # Channels-last inputs (e.g. a permuted HxWx3 array) make every per-offset slice op
     # stride over interleaved channels, about 5x slower: work on contiguous planes.
@@ -423,19 +431,26 @@ def solve_reflectance(
         [term for _, term in built.terms.values()],
         [gamma for gamma, _ in built.terms.values()],
         gamma_a=weights.gamma_a * o.value_scale,
-        theta=o.theta * o.value_scale,
+        theta=theta,
         z0=z0,
         tol=o.tol,
         max_outer=o.max_outer,
         cg_tol=o.cg_tol,
         cg_max_iter=o.cg_max_iter,
         track_objective=o.track_objective,
+        gap_tol=o.gap_tol or None,
+        theta_range=(
+            (o.theta * o.value_scale * o.theta_floor, o.theta * o.value_scale)
+            if o.gap_tol > 0 and o.theta_floor < 1
+            else None
+        ),
     )
     t5 = time.perf_counter()
     if cache is not None and "A+B" in built.terms and sol.outer_iterations.max() > 0:
         local = built.terms["A+B"][1]
         cache.state_valid = local.state_written
         cache.state_step = local.state_step
+        cache.theta = sol.theta
     refl = sol.z.clamp_min(0.0)
     if mask is not None:
         refl = torch.where(mask, refl, rho)
