@@ -83,6 +83,8 @@ class SolveReport:
         tolerance: the stopping tolerance of that measure.
         cap: the iteration cap (PCG iterations or Bregman iterations).
         converged: the measure fell below the tolerance before the cap.
+        measure: what ``residual`` is: ``"residual"``, ``"relative change"`` or ``"duality
+            gap"``.
     """
 
     stage: str
@@ -93,6 +95,7 @@ class SolveReport:
     tolerance: float
     cap: int
     converged: bool
+    measure: str = "residual"
 
     @property
     def capped(self) -> bool:
@@ -108,7 +111,7 @@ class SolveReport:
             state = f"stopped short of its tolerance before its cap of {self.cap} (no progress)"
         return (
             f"{self.stage} {self.alternation}: {self.iterations} iterations, "
-            f"residual {self.residual:.2g} (tol {self.tolerance:g}), {state}"
+            f"{self.measure} {self.residual:.2g} (tol {self.tolerance:g}), {state}"
         )
 
 
@@ -473,13 +476,13 @@ def decompose(
             rr = solve_reflectance(problem, refl_w, refl_opt, z0=z0, cache=reflectance_cache)
             refl = rr.reflectance
             sb = rr.solver
-            measure, tolerance = float(sb.change.max()), refl_opt.tol
+            value, tolerance, measure = float(sb.change.max()), refl_opt.tol, "relative change"
             if refl_opt.gap_tol > 0 and sb.gap is not None and bool(sb.gap.isfinite().all()):
-                measure, tolerance = float(sb.gap.max()), refl_opt.gap_tol
+                value, tolerance, measure = float(sb.gap.max()), refl_opt.gap_tol, "duality gap"
             solves.append(
                 SolveReport(
                     "reflectance", k, int(sb.outer_iterations.max()), sb.cg_iterations,
-                    measure, tolerance, refl_opt.max_outer, bool(sb.converged.all()),
+                    value, tolerance, refl_opt.max_outer, bool(sb.converged.all()), measure,
                 )
             )  # fmt: skip
         else:

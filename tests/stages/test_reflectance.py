@@ -330,3 +330,4 @@ def test_a_warm_solve_starts_at_the_penalty_its_state_was_written_at(monkeypatch
         assert start == end
     reports = [r for r in out.solves if r.stage == "reflectance"]
     assert all(r.converged and r.tolerance == 0.005 and r.residual < 0.005 for r in reports)
+    assert all(r.measure == "duality gap" and "duality gap" in str(r) for r in reports)
