@@ -133,8 +133,9 @@ class Parameters:
             Bregman updates absorb the error, Goldstein & Osher use one Gauss–Seidel sweep).
         bregman_tol: relative change of ``z`` at which Split-Bregman stops.
         bregman_gap_tol: relative duality gap at which Split-Bregman stops (measured every 5
-            iterations; a bound on how far Eq. 12's objective is above its minimum, relatively);
-            0: stop on ``bregman_tol`` instead.
+            iterations; a bound on how far Eq. 12's objective is above its minimum, relatively,
+            or relative to a thousandth of ``γ_a ‖ρ‖²`` where the objective is smaller than
+            that: nearly flat images); 0: stop on ``bregman_tol`` instead.
         bregman_theta_floor: with ``bregman_gap_tol``, residual balancing may lower the
             penalty ``θ`` to ``θ · bregman_theta_floor`` (1: a fixed ``θ``).
         bregman_cg_tol: relative residual at which each ``z`` step's CG stops.
@@ -605,7 +606,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "bregman_cg_iter": 5,
         "bregman_tol": 5e-5,
         # Stop 28: Split-Bregman stops on its duality gap, 0.5% (Eq. 12's objective provably
-        # within 0.5% of its minimum; the change rule above, 5e-5, remains for terms that
+        # within 0.5% of its minimum, or of 1e-3 γ_a‖ρ‖² on nearly flat images whose minimum
+        # is smaller than that; the change rule above, 5e-5, remains for terms that
         # cannot measure the gap, e.g. video's temporal term), and residual balancing may
         # lower theta to a quarter: ten photos 2031 -> 1265 Bregman iterations, MIT unchanged.
         "bregman_gap_tol": 0.005,

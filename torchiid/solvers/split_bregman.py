@@ -15,7 +15,9 @@ The ``z`` step is solved inexactly by Jacobi-preconditioned CG warm-started from
 The iteration starts at ``z0`` (default ``ρ``) with ``b_k = 0`` followed by one Bregman update, so
 a good ``z0`` is kept rather than first smoothed away. Each image stops when
 ``‖z_new − z‖ / ‖z‖ < tol`` (its ``z`` is then frozen) or after ``max_outer`` iterations; a batch
-gives the images' one-by-one results.
+gives the images' one-by-one results (except with ``theta_range``: the images of a batch share
+``θ``, balanced on their pooled residuals, so each still stops at its own gap but along another
+path).
 
 Duality gap (``gap_tol``). The clamped Bregman variable gives a dual-feasible point ``p_k = b_k /
 λ_k`` (``|p_k| <= 1``), and Eq. 12's dual ``D(p) = ⟨g, ρ⟩ − ‖g‖² / (4γ_a)``, ``g = Σ_k γ_k (W_k
@@ -48,7 +50,7 @@ from torchiid.core.check import check_finite, check_shape
 from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.solvers.pcg import pcg
 
-__all__ = ["SplitBregmanResult", "split_bregman"]
+__all__ = ["SplitBregmanResult", "split_bregman", "change_penalty", "GAP_FLOOR"]
 
 logger = logging.getLogger(__name__)
 
@@ -69,8 +71,11 @@ class SplitBregmanResult:
         change: ``(B,)`` last relative change of ``z``.
         converged: ``(B,)`` bool, whether the relative change fell below ``tol``.
         cg_residual: ``(B,)`` largest relative CG residual of the last ``z`` step over channels.
-        gap: ``(B,)`` the last measured relative duality gap ``(J(z) − D(p)) / J(z)`` (an upper
-            bound on ``z``'s relative excess over the minimum; ``nan`` where none was measured).
+        gap: ``(B,)`` the last measured relative duality gap ``(J(z) − D(p)) / max(J(z),
+            GAP_FLOOR · J(0))`` (an upper bound on ``z``'s relative excess over the minimum
+            where ``J(z) >= GAP_FLOOR · J(0)``, else on its excess over ``GAP_FLOOR · J(0)``;
+            ``nan`` where none was measured). Measured at the last update before the cap, so
+            a capped solve's gap is that of the iterate before the returned one.
         theta: the penalty ``θ`` of the last iteration (it changes with ``theta_range``).
     """
 
@@ -153,6 +158,8 @@ def split_bregman(
         raise ParameterError(f"gamma_a and theta must be > 0, got {gamma_a} and {theta}")
     if gap_tol is not None and not (gap_tol > 0 and check_every >= 1):
         raise ParameterError(f"need gap_tol > 0 and check_every >= 1, got {gap_tol}, {check_every}")
+    if not balance[0] >= balance[1] > 0:
+        raise ParameterError(f"balance must hold lower >= raise > 0, got {balance}")
     if theta_range is not None and not (0 < theta_range[0] <= theta <= theta_range[1]):
         raise ParameterError(
             f"theta_range must hold 0 < lo <= theta <= hi, got {theta_range}, theta {theta}"
@@ -259,7 +266,9 @@ def split_bregman(
         change = torch.where(active, step, change)
         z = torch.where(active.view(-1, 1, 1, 1), z_new, z)
         outer = outer + active.long()
-        check = gap_mode and (it + 1) % check_every == 0
+        # every check_every iterations, and at the last update before the cap (so a capped
+        # solve reports the gap of the z it returns, or of the one before)
+        check = gap_mode and ((it + 1) % check_every == 0 or it == max_outer - 2)
         if it == max_outer - 1:
             # last iteration: only the objective is needed, skip the Bregman update
             obj_new = None
@@ -283,7 +292,10 @@ def split_bregman(
                 scale = torch.maximum(primal_obj, floor).clamp_min(torch.finfo(rho.dtype).tiny)
                 now = (primal_obj - dual_obj) / scale
                 gap = torch.where(active, now, gap)
-                logger.debug("split-bregman: iteration %d, duality gap %s", it + 1, now.tolist())
+                if logger.isEnabledFor(logging.DEBUG):
+                    logger.debug(
+                        "split-bregman: iteration %d, duality gap %s", it + 1, now.tolist()
+                    )
                 if theta_range is not None:
                     new_theta = _balance(
                         z, rho, gamma_a, g_adj, measured, active & (now >= gap_tol),
@@ -292,14 +304,12 @@ def split_bregman(
                     if new_theta != theta:
                         # keep the multipliers θ b: b ← b θ_old / θ_new, and the z step's
                         # right-hand side θ Σ Mᵀ W (d − b) for the new θ and b
-                        ratio = new_theta / theta
-                        theta = new_theta
-                        new_lams = [g / theta for _, g in active_terms]
-                        for n, (t, _) in enumerate(active_terms):
-                            states[n] = t.rescale_state(states[n], lams[n], new_lams[n])
-                        lams = new_lams
-                        rhs = rhs.sub_(data_rhs).mul_(ratio).add_(data_rhs)
-                        rhs = rhs.add_(g_adj, alpha=ratio - 1.0)
+                        new_lams = [g / new_theta for _, g in active_terms]
+                        rhs = change_penalty(
+                            rhs, data_rhs, g_adj, states, active_terms, lams, new_lams,
+                            new_theta / theta,
+                        )  # fmt: skip
+                        theta, lams = new_theta, new_lams
                         precond = preconditioner()
                         last = None
                         logger.debug("split-bregman: θ -> %g", theta)
@@ -308,13 +318,15 @@ def split_bregman(
             objective.append(obj)
         if gap_mode:
             if check:
-                active = active & (gap >= gap_tol)
+                active = active & ~(gap < gap_tol)  # a NaN gap runs on to the cap
         else:
             active = active & (change >= tol)
-        logger.debug("split-bregman: iteration %d, relative change %s", it + 1, change.tolist())
+        if logger.isEnabledFor(logging.DEBUG):
+            logger.debug("split-bregman: iteration %d, relative change %s", it + 1, change.tolist())
         if not bool(active.any()):
             break
-    converged = gap < gap_tol if gap_mode else change < tol
+    # without a measured gap (no update was measured), the change rule tells
+    converged = torch.where(gap.isnan(), change < tol, gap < gap_tol) if gap_mode else change < tol
     return SplitBregmanResult(
         z=z,
         outer_iterations=outer,
@@ -326,6 +338,21 @@ def split_bregman(
         gap=gap,
         theta=theta,
     )
+
+
+def change_penalty(rhs, data_rhs, g_adj, states, active_terms, lams, new_lams, ratio):
+    """Move a Split-Bregman iteration from penalty ``θ`` to ``θ' = ratio · θ``, in place.
+
+    Keeps the Lagrange multipliers ``θ b``: each state becomes ``b · θ / θ'`` (the terms'
+    ``rescale_state``; a 16-bit state only changes its step), and the next ``z`` step's
+    right-hand side ``2γ_a ρ + θ Σ (W M)ᵀ (d − b)`` (``rhs``) becomes ``2γ_a ρ + θ' Σ (W M)ᵀ (d −
+    b θ / θ')``, i.e. ``2γ_a ρ + ratio (rhs − 2γ_a ρ) + (ratio − 1) g`` with ``g = θ Σ (W M)ᵀ b``
+    (``g_adj``, measured with the update): no pass over the state. Returns the new ``rhs``.
+    """
+    for n, (t, _) in enumerate(active_terms):
+        states[n] = t.rescale_state(states[n], lams[n], new_lams[n])
+    rhs = rhs.sub_(data_rhs).mul_(ratio).add_(data_rhs)
+    return rhs.add_(g_adj, alpha=ratio - 1.0)
 
 
 def _balance(z, rho, gamma_a, g_adj, measured, which, theta, theta_range, balance) -> float:

@@ -416,11 +416,16 @@ def solve_reflectance(
     """
     o = options
     theta = o.theta * o.value_scale
-    if o.gap_tol > 0 and o.theta_floor < 1 and o.warm_state and cache is not None:
-        if cache.state_valid and cache.theta is not None:
-            # the warm state's multipliers θ b were reached at this penalty: go on from it
-            theta = min(max(cache.theta, theta * o.theta_floor), theta)
+    balanced = o.gap_tol > 0 and o.theta_floor < 1
+    warm_theta = None
+    if balanced and o.warm_state and cache is not None and cache.state_valid:
+        warm_theta = cache.theta  # read before the terms are built (that clears state_valid)
     built = build_reflectance_terms(problem, weights, options, cache)
+    if warm_theta is not None and "T" not in built.terms:
+        # the warm state's multipliers θ b were reached at this penalty: go on from it (not
+        # with a temporal term, whose anchor coefficient 2γ/θ is made for the options' θ and
+        # which keeps θ fixed: it measures no gap)
+        theta = min(max(warm_theta, theta * o.theta_floor), theta)
     # Channels-last inputs (e.g. a permuted HxWx3 array) make every per-offset slice op
     # stride over interleaved channels, about 5x slower: work on contiguous planes.
     rho, image, mask = problem.rho.contiguous(), problem.image.contiguous(), problem.mask
@@ -440,9 +445,7 @@ def solve_reflectance(
         track_objective=o.track_objective,
         gap_tol=o.gap_tol or None,
         theta_range=(
-            (o.theta * o.value_scale * o.theta_floor, o.theta * o.value_scale)
-            if o.gap_tol > 0 and o.theta_floor < 1
-            else None
+            (o.theta * o.value_scale * o.theta_floor, o.theta * o.value_scale) if balanced else None
         ),
     )
     t5 = time.perf_counter()
