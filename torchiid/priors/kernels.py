@@ -241,10 +241,10 @@ def bregman_update(
     :func:`fixed_point_scales`): it is read as ``q · state_step`` and written with the step
     of ``lam``.
 
-    ``stats=True`` (no ``history``) also measures the update (``stencil_kernels.
-    _bregman_update_stats``, the same state and right-hand side) and returns ``(rhs, adj,
-    sums)``: ``adj = (W M)ᵀ b'`` ``(B, C, H, W)`` and per image ``(B, 4)`` float64 sums of
-    ``|W M z|``, ``(b' − b)²``, ``(W M z)²`` and ``d²``.
+    ``stats=True`` also measures the update (the kernel's measured mode: the same state and
+    right-hand side) and returns ``(rhs, adj, sums)``: ``adj = (W M)ᵀ b'`` ``(B, C, H, W)``
+    and per image ``(B, 4)`` float64 sums of ``|W M z|``, ``(b' − b)²``, ``(W M z)²`` and
+    ``d²``.
 
     Shape:
         z and history items ``(B, C, H, W)``, weights ``(B, K, H, W)``, state ``(B, C, K, H,
@@ -279,14 +279,18 @@ def bregman_update(
     if n <= 1 or work < PARALLEL_WORK:
         n = 1
     cuts = [blocks * i // n for i in range(n + 1)]  # each thread: a run of whole blocks
-    halo = np.empty((blocks, depth, c, w), dtype=rhs.numpy().dtype)
-    lam_t = rhs.numpy().dtype.type(lam)
+    dtype = rhs.numpy().dtype
+    halo = np.empty((blocks, depth, c, w), dtype=dtype)
+    # the measured update's outputs, or empty arrays (the kernel leaves them alone)
+    adj = torch.empty_like(rhs) if stats else torch.empty(0, 0, 0, 0, dtype=z.dtype)
+    halo2 = np.empty_like(halo) if stats else np.empty((0, 0, 0, 0), dtype=dtype)
+    sums = np.empty((blocks if stats else 0, b, 4), dtype=np.float64)
     args = (
-        zs.numpy() if not stats else z.contiguous().numpy(),
+        zs.numpy(),
         weights.contiguous().numpy(),
         dys,
         dxs,
-        lam_t,
+        dtype.type(lam),
         st.numpy(),
         bool(read),
         bool(write),
@@ -294,17 +298,12 @@ def bregman_update(
         inv_out,
         rhs.numpy(),
         halo,
+        adj.numpy(),
+        halo2,
+        sums,
+        block,
     )
     fn = kernel.bregman_update
-    if stats:
-        if history:
-            raise ValueError("bregman_update(stats=True) takes no history")
-        adj = torch.empty_like(rhs)
-        halo2 = np.empty_like(halo)
-        sums = np.empty((blocks, b, 4), dtype=np.float64)
-        args = (*args, adj.numpy(), halo2, sums)
-        fn = kernel.bregman_update_stats
-    args = (*args, block)
     if n == 1:
         fn(*args, 0, blocks)
     else:

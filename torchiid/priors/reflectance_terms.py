@@ -327,18 +327,15 @@ class _L1Term:
         """
         wz = self.apply(z)
         l1 = _sums(wz.abs()) if with_l1 or stats else None
+        apply_sq = _sums(wz.square()) if stats else None
+        old = b.clone() if stats and b is not None else None
+        u = wz if b is None else wz.add_(b)
+        b = u.clamp(-lam, lam) if b is None else b.copy_(u.clamp(-lam, lam))
         measured = None
         if stats:
-            old = torch.zeros_like(wz) if b is None else b.clone()
-            u = wz + old
-            new = u.clamp(-lam, lam)
-            measured = BregmanStats(
-                l1, _sums((new - old).square_()), _sums(wz.square()),
-                _sums((u - new).square_()), self.adjoint(new),
-            )  # fmt: skip
-            wz = u
-        u = wz if b is None or stats else wz.add_(b)
-        b = u.clamp(-lam, lam) if b is None else b.copy_(u.clamp(-lam, lam))
+            primal = _sums(b.square() if old is None else (b - old).square_())
+            split_sq = _sums((u - b).square_())
+            measured = BregmanStats(l1, primal, apply_sq, split_sq, self.adjoint(b))
         rhs = self.adjoint(u.sub_(b).sub_(b))
         return (b, rhs, l1, measured) if stats else (b, rhs, l1)
 

@@ -24,7 +24,6 @@ __all__ = [
     "affinity_exponent",
     "scale_by_factor",
     "bregman_update",
-    "bregman_update_stats",
     "add_halos",
 ]
 
@@ -247,7 +246,24 @@ def _matting_windows(img, mask, eps, qp, r0, r1):  # pragma: no cover - compiled
 
 
 def _bregman_update(
-    zs, w, dys, dxs, lam, state, read, write, scale_in, inv_out, rhs, halo, block, k0, k1
+    zs,
+    w,
+    dys,
+    dxs,
+    lam,
+    state,
+    read,
+    write,
+    scale_in,
+    inv_out,
+    rhs,
+    halo,
+    adj,
+    halo2,
+    stats,
+    block,
+    k0,
+    k1,
 ):  # pragma: no cover - compiled
     """A Split-Bregman update of ``StencilL1Term``: the new state and the right-hand side.
 
@@ -265,6 +281,15 @@ def _bregman_update(
     even, as ``torch.round``); the right-hand side uses the unrounded ``b'``. A float ``state``
     is read and written as it is (``inv_out = 0``; ``scale_in`` unused).
 
+    Measured update (``stats`` ``(blocks, B, 4)`` float64, not empty): the same state and
+    right-hand side, and also ``w b'`` added to ``adj_i`` and subtracted from ``adj_j`` (``adj
+    = (W M)ᵀ b'``, rows after the block into ``halo2[blk]``), and per block and image the sums
+    ``Σ |w (z_i − z_j)|``, ``Σ (b' − b)²`` (the primal residual ``W M z − d``), ``Σ (w (z_i −
+    z_j))²`` and ``Σ d²`` into ``stats[blk, b]``: for the duality gap and residual balancing of
+    :func:`torchiid.solvers.split_bregman.split_bregman`. They run per column in the arrays'
+    dtype over a row's pairs (so the loops vectorise), then per row in float64. Otherwise
+    ``adj``, ``halo2`` and ``stats`` are empty and untouched.
+
     The ``B·H`` rows are cut into blocks of ``block`` rows; this call does blocks ``k0 .. k1 −
     1``. Each block zeroes and writes its own rows; its contributions to the rows after it go
     to ``halo[blk]`` ``(D, C, W)`` (``D`` the largest ``dy``; row ``end + t`` at ``halo[blk,
@@ -278,14 +303,23 @@ def _bregman_update(
     nk = dys.shape[0]
     bbuf = np.empty(wd, dtype=zs.dtype)  # a row of Bregman variables
     quant = inv_out > 0
+    measure = stats.shape[0] > 0
+    cbuf = np.empty(wd if measure else 0, dtype=zs.dtype)  # w b', for adj
+    nbuf = np.empty(wd if measure else 0, dtype=zs.dtype)  # b', to store
+    acc = np.zeros((4, wd if measure else 0), dtype=zs.dtype)  # per-column sums of a row
     for blk in range(k0, k1):
         r0 = blk * block
         r1 = min(rows, r0 + block)
         halo[blk] = 0.0
         _zero_rows(rhs, r0, r1)
+        if measure:
+            halo2[blk] = 0.0
+            stats[blk] = 0.0
+            _zero_rows(adj, r0, r1)
         for r in range(r0, r1):
             b = r // h
             y = r - b * h
+            a1, a2, a3, a4 = acc[0], acc[1], acc[2], acc[3]
             for k in range(nk):
                 dy = dys[k]
                 dx = dxs[k]
@@ -310,7 +344,27 @@ def _bregman_update(
                             bb[t] = min(max(u, -lam), lam)
                     zi = zs[m, b, c, y, x0 : x0 + n]
                     zj = zs[m, b, c, y + dy, x0 + dx : x0 + dx + n]
-                    if write and quant:
+                    if measure:
+                        nw = nbuf[:n]
+                        _measured_pairs(zi, zj, wr, bb, cbuf[:n], nw, a1, a2, a3, a4, lam)
+                        if write and quant:
+                            sr = state[b, c, k, y, x0 : x0 + n]
+                            for t in range(n):
+                                sr[t] = np.rint(nw[t] * inv_out)
+                        elif write:
+                            sr = state[b, c, k, y, x0 : x0 + n]
+                            sr[:] = nw
+                        ai = adj[b, c, y, x0 : x0 + n]
+                        if rj < r1:
+                            aj = adj[b, c, y + dy, x0 + dx : x0 + dx + n]
+                        else:
+                            aj = halo2[blk, rj - r1, c, x0 + dx : x0 + dx + n]
+                        cb = cbuf[:n]
+                        for t in range(n):
+                            ai[t] += cb[t]
+                        for t in range(n):
+                            aj[t] -= cb[t]
+                    elif write and quant:
                         sr = state[b, c, k, y, x0 : x0 + n]
                         for t in range(n):
                             wt = wr[t]
@@ -337,122 +391,38 @@ def _bregman_update(
                         oi[t] += bb[t]
                     for t in range(n):
                         oj[t] -= bb[t]
+            if measure:
+                for q in range(4):
+                    total = 0.0
+                    for t in range(wd):
+                        total += acc[q, t]
+                    stats[blk, b, q] += total
+                acc[:] = 0.0
     return rhs
 
 
-def _bregman_update_stats(
-    z,
-    w,
-    dys,
-    dxs,
-    lam,
-    state,
-    read,
-    write,
-    scale_in,
-    inv_out,
-    rhs,
-    halo,
-    adj,
-    halo2,
-    stats,
-    block,
-    k0,
-    k1,
-):  # pragma: no cover - compiled
-    """:func:`_bregman_update` at ``z`` (no replay) that also measures the update.
+@njit(inline="always")
+def _measured_pairs(zi, zj, wr, bb, cb, nw, a1, a2, a3, a4, lam):  # pragma: no cover
+    """The update of a run of pairs in :func:`_bregman_update`'s measured mode.
 
-    Besides the new state and ``rhs`` (the same values as :func:`_bregman_update`), it adds
-    ``w b'`` to ``adj_i`` and subtracts it from ``adj_j`` (``adj = (W M)ᵀ b'``, rows after the
-    block into ``halo2[blk]`` like ``rhs``'s into ``halo[blk]``), and sums per block and image
-    into ``stats[blk, b]`` (float64): ``Σ |w (z_i − z_j)|``, ``Σ (b' − b)²`` (the primal
-    residual ``W M z − d``), ``Σ (w (z_i − z_j))²`` and ``Σ d²``. For the duality gap and the
-    residual balancing of :func:`torchiid.solvers.split_bregman.split_bregman`. The sums run
-    per column in the arrays' dtype over a row's pairs (so the loops vectorise), then per row
-    in float64.
+    Leaves ``w (d − b')`` in ``bb`` (as the plain update), ``w b'`` in ``cb`` and ``b'`` in
+    ``nw`` (to store), and adds the four measured quantities to the per-column sums ``a1`` ..
+    ``a4`` (the rows of :func:`_bregman_update`'s ``acc``).
     """
-    nb, nc, h, wd = z.shape
-    rows = nb * h
-    nk = dys.shape[0]
-    bbuf = np.empty(wd, dtype=z.dtype)
-    cbuf = np.empty(wd, dtype=z.dtype)
-    nbuf = np.empty(wd, dtype=z.dtype)
-    acc = np.empty((4, wd), dtype=z.dtype)
-    quant = inv_out > 0
-    for blk in range(k0, k1):
-        r0 = blk * block
-        r1 = min(rows, r0 + block)
-        halo[blk] = 0.0
-        halo2[blk] = 0.0
-        stats[blk] = 0.0
-        _zero_rows(rhs, r0, r1)
-        _zero_rows(adj, r0, r1)
-        for r in range(r0, r1):
-            b = r // h
-            y = r - b * h
-            acc[:] = 0.0
-            a1 = acc[0]
-            a2 = acc[1]
-            a3 = acc[2]
-            a4 = acc[3]
-            for k in range(nk):
-                dy = dys[k]
-                dx = dxs[k]
-                if y + dy >= h:
-                    continue
-                x0, n = _span(dx, wd)
-                wr = w[b, k, y, x0 : x0 + n]
-                rj = r + dy
-                for c in range(nc):
-                    oi = rhs[b, c, y, x0 : x0 + n]
-                    ai = adj[b, c, y, x0 : x0 + n]
-                    if rj < r1:
-                        oj = rhs[b, c, y + dy, x0 + dx : x0 + dx + n]
-                        aj = adj[b, c, y + dy, x0 + dx : x0 + dx + n]
-                    else:
-                        oj = halo[blk, rj - r1, c, x0 + dx : x0 + dx + n]
-                        aj = halo2[blk, rj - r1, c, x0 + dx : x0 + dx + n]
-                    bb = bbuf[:n]
-                    cb = cbuf[:n]
-                    nw = nbuf[:n]
-                    _read_state(state, b, c, k, y, x0, bb, read, quant, scale_in)
-                    zi = z[b, c, y, x0 : x0 + n]
-                    zj = z[b, c, y + dy, x0 + dx : x0 + dx + n]
-                    for t in range(n):
-                        wt = wr[t]
-                        a = (zi[t] - zj[t]) * wt
-                        u = a + bb[t]
-                        bn = min(max(u, -lam), lam)
-                        a1[t] += abs(a)
-                        a3[t] += a * a
-                        e = bn - bb[t]
-                        a2[t] += e * e
-                        e = u - bn
-                        a4[t] += e * e
-                        nw[t] = bn
-                        cb[t] = bn * wt
-                        bb[t] = (u - (bn + bn)) * wt
-                    if write and quant:
-                        sr = state[b, c, k, y, x0 : x0 + n]
-                        for t in range(n):
-                            sr[t] = np.rint(nw[t] * inv_out)
-                    elif write:
-                        sr = state[b, c, k, y, x0 : x0 + n]
-                        sr[:] = nw
-                    for t in range(n):
-                        oi[t] += bb[t]
-                    for t in range(n):
-                        oj[t] -= bb[t]
-                    for t in range(n):
-                        ai[t] += cb[t]
-                    for t in range(n):
-                        aj[t] -= cb[t]
-            for q in range(4):
-                total = 0.0
-                for t in range(wd):
-                    total += acc[q, t]
-                stats[blk, b, q] += total
-    return rhs
+    for t in range(bb.shape[0]):
+        wt = wr[t]
+        a = (zi[t] - zj[t]) * wt
+        u = a + bb[t]
+        bn = min(max(u, -lam), lam)
+        a1[t] += abs(a)
+        e = bn - bb[t]
+        a2[t] += e * e
+        a3[t] += a * a
+        e = u - bn
+        a4[t] += e * e
+        nw[t] = bn
+        cb[t] = bn * wt
+        bb[t] = (u - (bn + bn)) * wt
 
 
 def _add_halos(rhs, halo, block):  # pragma: no cover - compiled
@@ -582,7 +552,6 @@ gather_parallel = njit(parallel=True, nogil=True, cache=True, boundscheck=False)
 matting_weights = _jit(_matting_weights)
 # IEEE semantics: the replayed Bregman variable is the one the torch path would have stored
 bregman_update = njit(nogil=True, cache=True, boundscheck=False)(_bregman_update)
-bregman_update_stats = njit(nogil=True, cache=True, boundscheck=False)(_bregman_update_stats)
 add_halos = njit(nogil=True, cache=True, boundscheck=False)(_add_halos)
 # the window statistics keep IEEE semantics, as the torch ops that they replace
 matting_windows = njit(nogil=True, cache=True, boundscheck=False)(_matting_windows)
