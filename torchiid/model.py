@@ -85,6 +85,9 @@ class SolveReport:
         converged: the measure fell below the tolerance before the cap.
         measure: what ``residual`` is: ``"residual"``, ``"relative change"`` or ``"duality
             gap"``.
+        distance: with the duality gap, a certified bound on how far the reflectance ``z`` is
+            from Eq. 12's exact minimiser ``z*``: ``‖z − z*‖ / ‖ρ‖`` (the batch's largest; see
+            :class:`~torchiid.solvers.split_bregman.SplitBregmanResult`); ``None`` otherwise.
     """
 
     stage: str
@@ -96,6 +99,7 @@ class SolveReport:
     cap: int
     converged: bool
     measure: str = "residual"
+    distance: float | None = None
 
     @property
     def capped(self) -> bool:
@@ -109,9 +113,10 @@ class SolveReport:
             state = f"stopped at its cap of {self.cap}"
         else:  # a breakdown or no further progress: a larger cap would not help
             state = f"stopped short of its tolerance before its cap of {self.cap} (no progress)"
+        within = "" if self.distance is None else f", R within {self.distance:.2%} of the minimiser"
         return (
             f"{self.stage} {self.alternation}: {self.iterations} iterations, "
-            f"{self.measure} {self.residual:.2g} (tol {self.tolerance:g}), {state}"
+            f"{self.measure} {self.residual:.2g} (tol {self.tolerance:g}){within}, {state}"
         )
 
 
@@ -477,12 +482,16 @@ def decompose(
             refl = rr.reflectance
             sb = rr.solver
             value, tolerance, measure = float(sb.change.max()), refl_opt.tol, "relative change"
+            distance = None
             if refl_opt.gap_tol > 0 and sb.gap is not None and bool(sb.gap.isfinite().all()):
                 value, tolerance, measure = float(sb.gap.max()), refl_opt.gap_tol, "duality gap"
+                if sb.distance is not None and bool(sb.distance.isfinite().all()):
+                    distance = float(sb.distance.max())
             solves.append(
                 SolveReport(
                     "reflectance", k, int(sb.outer_iterations.max()), sb.cg_iterations,
                     value, tolerance, refl_opt.max_outer, bool(sb.converged.all()), measure,
+                    distance,
                 )
             )  # fmt: skip
         else:

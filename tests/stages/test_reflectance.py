@@ -331,3 +331,6 @@ def test_a_warm_solve_starts_at_the_penalty_its_state_was_written_at(monkeypatch
     reports = [r for r in out.solves if r.stage == "reflectance"]
     assert all(r.converged and r.tolerance == 0.005 and r.residual < 0.005 for r in reports)
     assert all(r.measure == "duality gap" and "duality gap" in str(r) for r in reports)
+    # and a certified distance to the minimiser (tested against a reference in
+    # tests/solvers/test_split_bregman.py), which the one-line report names
+    assert all(0 < r.distance < 0.05 and "of the minimiser" in str(r) for r in reports)

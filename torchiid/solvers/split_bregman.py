@@ -77,6 +77,10 @@ class SplitBregmanResult:
             ``nan`` where none was measured). Measured at the last update before the cap, so
             a capped solve's gap is that of the iterate before the returned one.
         theta: the penalty ``θ`` of the last iteration (it changes with ``theta_range``).
+        distance: ``(B,)`` a certified bound on the distance of ``z`` to the exact minimiser
+            ``z*``, relative to ``ρ``: ``‖z − z*‖ / ‖ρ‖ <= sqrt((J(z) − D(p)) / (γ_a ‖ρ‖²))``
+            (``J`` is ``2γ_a``-strongly convex, so ``J(z) − J(z*) >= γ_a ‖z − z*‖²``, and
+            ``D(p) <= J(z*)``); from the same measurement as ``gap``, ``nan`` where none.
     """
 
     z: torch.Tensor
@@ -88,6 +92,7 @@ class SplitBregmanResult:
     cg_residual: torch.Tensor
     gap: torch.Tensor | None = None
     theta: float | None = None
+    distance: torch.Tensor | None = None
 
 
 def split_bregman(
@@ -211,13 +216,14 @@ def split_bregman(
     change = torch.zeros(bsz, dtype=rho.dtype, device=rho.device)
     cg_res = torch.zeros(bsz, dtype=rho.dtype, device=rho.device)
     gap = torch.full((bsz,), float("nan"), dtype=rho.dtype, device=rho.device)
+    distance = torch.full_like(gap, float("nan"))
     active = torch.ones(bsz, dtype=torch.bool, device=rho.device)
     if not active_terms:
         # no L1 term: the minimiser is rho itself
         objective = obj.unsqueeze(0) if track_objective else None
         return SplitBregmanResult(
             rho.clone(), outer, 0, objective, change, torch.ones_like(active), cg_res,
-            torch.zeros_like(gap), theta,
+            torch.zeros_like(gap), theta, torch.zeros_like(gap),
         )  # fmt: skip
 
     degree = sum(t.normal_diagonal() for t, _ in active_terms)
@@ -292,6 +298,11 @@ def split_bregman(
                 scale = torch.maximum(primal_obj, floor).clamp_min(torch.finfo(rho.dtype).tiny)
                 now = (primal_obj - dual_obj) / scale
                 gap = torch.where(active, now, gap)
+                # strong convexity: γ_a ‖z − z*‖² <= J(z) − J(z*) <= J(z) − D(p); relative to
+                # ‖ρ‖ (floor / GAP_FLOOR = γ_a ‖ρ‖²)
+                excess = (primal_obj - dual_obj).clamp_min(0.0)
+                dist = (excess / (floor / GAP_FLOOR).clamp_min(torch.finfo(rho.dtype).tiny)).sqrt()
+                distance = torch.where(active, dist, distance)
                 if logger.isEnabledFor(logging.DEBUG):
                     logger.debug(
                         "split-bregman: iteration %d, duality gap %s", it + 1, now.tolist()
@@ -337,6 +348,7 @@ def split_bregman(
         cg_residual=cg_res,
         gap=gap,
         theta=theta,
+        distance=distance,
     )
 
 
