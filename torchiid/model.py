@@ -88,6 +88,8 @@ class SolveReport:
         distance: with the duality gap, a certified bound on how far the reflectance ``z`` is
             from Eq. 12's exact minimiser ``z*``: ``‖z − z*‖ / ‖ρ‖`` (the batch's largest; see
             :class:`~torchiid.solvers.split_bregman.SplitBregmanResult`); ``None`` otherwise.
+            A solve stopped at its cap was last measured one iterate before the one it
+            returns, so its line does not print it.
     """
 
     stage: str
@@ -113,7 +115,9 @@ class SolveReport:
             state = f"stopped at its cap of {self.cap}"
         else:  # a breakdown or no further progress: a larger cap would not help
             state = f"stopped short of its tolerance before its cap of {self.cap} (no progress)"
-        within = "" if self.distance is None else f", R within {self.distance:.2%} of the minimiser"
+        within = ""
+        if self.distance is not None and self.converged:  # certified for the returned R
+            within = f", R within {self.distance:.2%} of the minimiser"
         return (
             f"{self.stage} {self.alternation}: {self.iterations} iterations, "
             f"{self.measure} {self.residual:.2g} (tol {self.tolerance:g}){within}, {state}"

@@ -349,10 +349,13 @@ def test_a_change_of_penalty_keeps_the_multipliers_and_the_next_right_hand_side(
     assert torch.allclose(new, expect, atol=2e-3 * float(expect.abs().max()))
 
 
-def test_certified_distance_bounds_the_distance_to_the_minimiser():
+@pytest.mark.parametrize("scale", [1.0, 10.0])
+def test_certified_distance_bounds_the_distance_to_the_minimiser(scale):
     # J is 2γ_a-strongly convex: γ_a‖z − z*‖² <= J(z) − J* <= J(z) − D(p), so the reported
-    # distance bounds ‖z − z*‖ / ‖ρ‖ (a wrong γ_a or a missing square root breaks it)
+    # distance bounds ‖z − z*‖ / ‖ρ‖ (a wrong γ_a or a missing square root breaks it; the
+    # scaled ρ, whose J(z) is far from ‖ρ‖², catches a relative gap in place of J(z) − D(p))
     rho, terms, gam = _gap_problem()
+    rho = rho * scale
     gam = [4 * g for g in gam]
     kw = dict(gamma_a=4.0, theta=4.0, max_outer=5000, cg_tol=1e-10, cg_max_iter=100)
     ref = split_bregman(rho, terms, gam, gap_tol=1e-7, check_every=1, **kw)

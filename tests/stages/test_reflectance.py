@@ -334,3 +334,13 @@ def test_a_warm_solve_starts_at_the_penalty_its_state_was_written_at(monkeypatch
     # and a certified distance to the minimiser (tested against a reference in
     # tests/solvers/test_split_bregman.py), which the one-line report names
     assert all(0 < r.distance < 0.05 and "of the minimiser" in str(r) for r in reports)
+
+
+def test_a_capped_report_does_not_certify_the_returned_reflectance():
+    # a capped solve's last gap belongs to the iterate before the returned one
+    from torchiid.model import SolveReport
+
+    done = SolveReport("reflectance", 1, 45, 225, 0.0045, 0.005, 400, True, "duality gap", 0.007)
+    capped = SolveReport("reflectance", 1, 400, 2000, 0.02, 0.005, 400, False, "duality gap", 0.02)
+    assert "R within 0.70% of the minimiser" in str(done)
+    assert "minimiser" not in str(capped) and "stopped at its cap of 400" in str(capped)
