@@ -29,7 +29,7 @@ def main() -> None:
     from torchiid.params import Parameters
 
     real = stage.split_bregman
-    rows: list[tuple[int, float, float, float, float]] = []
+    rows: list[tuple[int, float, float, float, float, float]] = []
 
     def checked(rho, terms, gammas, **kw):
         # the reference starts from the same warm state: keep a copy and put it back after

@@ -187,7 +187,9 @@ def split_bregman(
     if gap_tol is not None and not gap_mode:
         logger.debug("split-bregman: a term measures no duality gap; stopping on the change")
     data_rhs = 2.0 * gamma_a * rho
-    floor = GAP_FLOOR * gamma_a * rho.square().flatten(1).sum(dim=1) if gap_mode else None
+    # the data's energy J(0) = γ_a‖ρ‖² per image: the gap's floor and the distance's scale
+    energy0 = gamma_a * rho.square().flatten(1).sum(dim=1) if gap_mode else None
+    floor = GAP_FLOOR * energy0 if gap_mode else None
 
     def bregman(z: torch.Tensor, states: list[torch.Tensor | None], final: bool, stats: bool):
         rhs = data_rhs.clone()
@@ -298,10 +300,10 @@ def split_bregman(
                 scale = torch.maximum(primal_obj, floor).clamp_min(torch.finfo(rho.dtype).tiny)
                 now = (primal_obj - dual_obj) / scale
                 gap = torch.where(active, now, gap)
-                # strong convexity: γ_a ‖z − z*‖² <= J(z) − J(z*) <= J(z) − D(p); relative to
-                # ‖ρ‖ (floor / GAP_FLOOR = γ_a ‖ρ‖²)
+                # strong convexity: γ_a ‖z − z*‖² <= J(z) − J(z*) <= J(z) − D(p), relative to
+                # ‖ρ‖: ‖z − z*‖² / ‖ρ‖² <= (J(z) − D(p)) / J(0)
                 excess = (primal_obj - dual_obj).clamp_min(0.0)
-                dist = (excess / (floor / GAP_FLOOR).clamp_min(torch.finfo(rho.dtype).tiny)).sqrt()
+                dist = (excess / energy0.clamp_min(torch.finfo(rho.dtype).tiny)).sqrt()
                 distance = torch.where(active, dist, distance)
                 if logger.isEnabledFor(logging.DEBUG):
                     logger.debug(
