@@ -321,3 +321,46 @@ def test_an_unreachable_scheduler_is_a_set_up_error(tmp_path, capsys, monkeypatc
     err = capsys.readouterr().err
     assert f"cannot reach the Dask scheduler at {address}" in err
     assert not (tmp_path / "o").exists()
+
+
+def _interrupted_in_a_kernel(*args, **kwargs):
+    """What Ctrl-C inside a numba kernel raises: SystemError caused by the KeyboardInterrupt."""
+    try:
+        raise KeyboardInterrupt
+    except KeyboardInterrupt as exc:
+        raise SystemError("CPUDispatcher(...) returned a result with an exception set") from exc
+
+
+def test_ctrl_c_inside_a_compiled_kernel_is_an_interruption_not_a_failed_image(tmp_path):
+    import pytest
+
+    from torchiid.collection import ImageJob, RunSettings
+    from torchiid.collection.job import process_image
+    from torchiid.params import Parameters
+
+    from conftest import photo
+
+    path = photo(tmp_path / "a.png")
+    settings = RunSettings(out=tmp_path / "out", params=Parameters(), method="semantic")
+    job = ImageJob(0, str(path), "a")
+    with pytest.raises(KeyboardInterrupt):
+        process_image(job, settings, decompose_fn=_interrupted_in_a_kernel)
+    out = tmp_path / "out"
+    assert not out.exists() or not any(out.iterdir())
+
+
+def _plain_bug(*args, **kwargs):
+    raise SystemError("a real internal error")
+
+
+def test_a_system_error_without_an_interrupt_still_fails_the_image(tmp_path):
+    from torchiid.collection import ImageJob, RunSettings
+    from torchiid.collection.job import process_image
+    from torchiid.params import Parameters
+
+    from conftest import photo
+
+    path = photo(tmp_path / "a.png")
+    settings = RunSettings(out=tmp_path / "out", params=Parameters(), method="semantic")
+    result = process_image(ImageJob(0, str(path), "a"), settings, decompose_fn=_plain_bug)
+    assert result.status == "failed" and result.failure == "error"
