@@ -323,6 +323,15 @@ def test_an_unreachable_scheduler_is_a_set_up_error(tmp_path, capsys, monkeypatc
     assert not (tmp_path / "o").exists()
 
 
+def _small_photo(path):
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    cv2.imwrite(str(path), rng.integers(30, 220, (48, 64, 3), dtype=np.uint8))
+    return path
+
+
 def _interrupted_in_a_kernel(*args, **kwargs):
     """What Ctrl-C inside a numba kernel raises: SystemError caused by the KeyboardInterrupt."""
     try:
@@ -338,9 +347,7 @@ def test_ctrl_c_inside_a_compiled_kernel_is_an_interruption_not_a_failed_image(t
     from torchiid.collection.job import process_image
     from torchiid.params import Parameters
 
-    from conftest import photo
-
-    path = photo(tmp_path / "a.png")
+    path = _small_photo(tmp_path / "a.png")
     settings = RunSettings(out=tmp_path / "out", params=Parameters(), method="semantic")
     job = ImageJob(0, str(path), "a")
     with pytest.raises(KeyboardInterrupt):
@@ -358,9 +365,7 @@ def test_a_system_error_without_an_interrupt_still_fails_the_image(tmp_path):
     from torchiid.collection.job import process_image
     from torchiid.params import Parameters
 
-    from conftest import photo
-
-    path = photo(tmp_path / "a.png")
+    path = _small_photo(tmp_path / "a.png")
     settings = RunSettings(out=tmp_path / "out", params=Parameters(), method="semantic")
     result = process_image(ImageJob(0, str(path), "a"), settings, decompose_fn=_plain_bug)
     assert result.status == "failed" and result.failure == "error"
