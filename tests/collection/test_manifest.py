@@ -328,7 +328,7 @@ def _small_photo(path):
     import numpy as np
 
     rng = np.random.default_rng(0)
-    cv2.imwrite(str(path), rng.integers(30, 220, (48, 64, 3), dtype=np.uint8))
+    cv2.imwrite(str(path), rng.integers(30, 220, (64, 80, 3), dtype=np.uint8))
     return path
 
 
