@@ -21,7 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from torchiid.commands.decompose import add_parameter_options
-from torchiid.core.exceptions import TorchiidError, one_line
+from torchiid.core.exceptions import TorchiidError, caused_by_interrupt, one_line
 
 __all__ = ["main", "build_parser"]
 
@@ -251,6 +251,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("torchiid: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # noqa: BLE001 - a one-line report, the traceback with -v
+        if caused_by_interrupt(exc):  # Ctrl-C inside a compiled kernel
+            print("torchiid: interrupted", file=sys.stderr)
+            return 130
         print(
             f"torchiid: error: internal error ({type(exc).__name__}: {one_line(str(exc))}); "
             "rerun with --verbose for the traceback",

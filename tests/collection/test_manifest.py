@@ -323,15 +323,6 @@ def test_an_unreachable_scheduler_is_a_set_up_error(tmp_path, capsys, monkeypatc
     assert not (tmp_path / "o").exists()
 
 
-def _small_photo(path):
-    import cv2
-    import numpy as np
-
-    rng = np.random.default_rng(0)
-    cv2.imwrite(str(path), rng.integers(30, 220, (64, 80, 3), dtype=np.uint8))
-    return path
-
-
 def _interrupted_in_a_kernel(*args, **kwargs):
     """What Ctrl-C inside a numba kernel raises: SystemError caused by the KeyboardInterrupt."""
     try:
@@ -341,13 +332,9 @@ def _interrupted_in_a_kernel(*args, **kwargs):
 
 
 def test_ctrl_c_inside_a_compiled_kernel_is_an_interruption_not_a_failed_image(tmp_path):
-    import pytest
-
-    from torchiid.collection import ImageJob, RunSettings
     from torchiid.collection.job import process_image
-    from torchiid.params import Parameters
 
-    path = _small_photo(tmp_path / "a.png")
+    path = photo(tmp_path / "a.png")
     settings = RunSettings(out=tmp_path / "out", params=Parameters(), method="semantic")
     job = ImageJob(0, str(path), "a")
     with pytest.raises(KeyboardInterrupt):
@@ -361,11 +348,9 @@ def _plain_bug(*args, **kwargs):
 
 
 def test_a_system_error_without_an_interrupt_still_fails_the_image(tmp_path):
-    from torchiid.collection import ImageJob, RunSettings
     from torchiid.collection.job import process_image
-    from torchiid.params import Parameters
 
-    path = _small_photo(tmp_path / "a.png")
+    path = photo(tmp_path / "a.png")
     settings = RunSettings(out=tmp_path / "out", params=Parameters(), method="semantic")
     result = process_image(ImageJob(0, str(path), "a"), settings, decompose_fn=_plain_bug)
     assert result.status == "failed" and result.failure == "error"

@@ -44,6 +44,7 @@ from torchiid.core.exceptions import (
     ImageError,
     ModelError,
     TorchiidError,
+    caused_by_interrupt,
     describe_error,
     one_line,
 )
@@ -561,7 +562,7 @@ def process_image(
     except KeyboardInterrupt:
         raise
     except Exception as exc:  # noqa: BLE001 - one bad input must not stop the batch
-        if _carries_interrupt(exc):
+        if caused_by_interrupt(exc):
             # Ctrl-C inside a compiled kernel: numba's dispatcher turns the KeyboardInterrupt
             # into "SystemError: ... returned a result with an exception set" (the interrupt
             # is its cause); it is an interruption, not a failed image
@@ -583,18 +584,6 @@ def process_image(
         if result.retryable:
             log.info("the error below came from here:", exc_info=exc)
         return result
-
-
-def _carries_interrupt(exc: BaseException) -> bool:
-    """Whether ``exc`` was caused by a ``KeyboardInterrupt`` (through its cause chain)."""
-    seen: set[int] = set()
-    cur: BaseException | None = exc
-    while cur is not None and id(cur) not in seen:
-        if isinstance(cur, KeyboardInterrupt):
-            return True
-        seen.add(id(cur))
-        cur = cur.__cause__ or cur.__context__
-    return False
 
 
 def _finish(result, placed, settings, t0, decomposition, stem) -> None:

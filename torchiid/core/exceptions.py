@@ -8,6 +8,7 @@ message and a non-zero exit status.
 from __future__ import annotations
 
 __all__ = [
+    "caused_by_interrupt",
     "TorchiidError",
     "ImageError",
     "ShapeError",
@@ -66,3 +67,19 @@ def describe_error(exc: BaseException) -> str:
         f"internal error ({type(exc).__name__}: {one_line(str(exc))}); "
         "rerun with --verbose for the traceback"
     )
+
+
+def caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether ``exc`` came from a ``KeyboardInterrupt`` (anywhere in its cause chain).
+
+    Ctrl-C inside a numba kernel reaches Python as ``SystemError: ... returned a result with
+    an exception set`` whose cause is the interrupt: that is an interruption, not a failure.
+    """
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, KeyboardInterrupt):
+            return True
+        seen.add(id(cur))
+        cur = cur.__cause__ or cur.__context__
+    return False
