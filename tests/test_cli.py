@@ -269,6 +269,33 @@ def test_export_onnx_takes_output_like_the_other_subcommands(tmp_path, monkeypat
     assert f"wrote {tmp_path / 'm.onnx'}" in capsys.readouterr().out
 
 
+def _raise_from(cause):
+    def fail(_directory):
+        try:
+            raise cause
+        except BaseException as exc:
+            # what numba's dispatcher raises when a Ctrl-C lands inside a compiled kernel
+            raise SystemError("<numba dispatcher> returned a result with an exception set") from exc
+
+    return fail
+
+
+def test_ctrl_c_inside_a_compiled_kernel_is_reported_as_an_interruption(
+    tmp_path, monkeypatch, capsys
+):
+    import torchiid.features.onnx_backend as onnx_backend
+
+    monkeypatch.setattr(onnx_backend, "export_to_dir", _raise_from(KeyboardInterrupt()))
+    assert main(["export-onnx", "-o", str(tmp_path)]) == 130
+    err = capsys.readouterr().err
+    assert "torchiid: interrupted" in err
+    assert "internal error" not in err
+    # the same wrapper around an ordinary failure is still an internal error, status 2
+    monkeypatch.setattr(onnx_backend, "export_to_dir", _raise_from(ValueError("bad")))
+    assert main(["export-onnx", "-o", str(tmp_path)]) == 2
+    assert "internal error (SystemError" in capsys.readouterr().err
+
+
 def test_retinex_output_follows_the_readme_convention(photos, tmp_path):
     """--method retinex: R is an albedo in [0, 1] (99.9th percentile of max_c R_c is 1),
     R * S == I, shading_white is the shading's 99th percentile, like the method's output."""

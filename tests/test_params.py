@@ -32,6 +32,7 @@ def test_default_preset_differs_from_paper_only_where_tuned():
         "lambda_m",  # re-tuned with S_s
         "lambda_s",  # S_s is not one of the paper's priors
         "t_e",  # nor is S_l's cut beside colour edges
+        "base_mix",  # the matting base of later alternations mixes in the image
     }
     # the no-argument object is what decompose() does by default
     assert Parameters.preset("default") == Parameters()

@@ -88,7 +88,10 @@ def image_priors(
         alternation: 1-based alternation whose weights (§3.4 schedule) to report.
         rho: the reflectance the colour weights of ``A``, ``B``, ``C`` are computed on
             (default: the image itself).
-        base_image: the matting base of ``S_p`` (default: the Gaussian-smoothed image).
+        base_image: the previous reflectance, from which the matting base of ``S_p`` is made
+            as in the solver's later alternations (mixed with the smoothed image by
+            ``params.base_mix``; 1 uses it as the base itself); default: the Gaussian-smoothed
+            image.
         merge: build ``A`` and ``B`` as the solver's merged term ``"A+B"``.
 
     Returns:

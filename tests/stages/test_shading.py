@@ -392,3 +392,42 @@ def test_coarse_levels_reuse_the_lle_neighbourhood_and_change_nothing(masked, mo
     assert len(calls) == 3
     assert torch.equal(shared.log_shading, own.log_shading)
     assert shared.diagnostics.iterations == own.diagnostics.iterations
+
+
+def test_the_mixed_matting_base_is_the_weighted_geometric_mean():
+    from torchiid.stages.shading import matting_base
+
+    g = torch.Generator().manual_seed(0)
+    image = torch.rand(1, 3, 12, 14, generator=g, dtype=torch.float64) + 0.1
+    refl = torch.rand(1, 3, 12, 14, generator=g, dtype=torch.float64) + 0.1
+    smooth = matting_base(image, refl, None, 1.0, 0.0)
+    assert not torch.equal(smooth, image)  # the first alternation's smoothed image
+    assert torch.equal(matting_base(image, refl, None, 1.0, 1.0), refl)
+    mixed = matting_base(image, refl, None, 1.0, 0.75)
+    assert torch.allclose(mixed, refl**0.75 * smooth**0.25)
+    with pytest.raises(ParameterError, match="base_mix"):
+        ShadingOptions(base_mix=1.5)
+
+
+def test_the_mixed_matting_base_does_not_fight_shading_relief_on_a_flat_albedo():
+    # a white-ish surface under light with a bump (relief) and a gradient: the previous
+    # reflectance R is flat, so the paper's base (R alone) makes S_p a plain Laplacian that
+    # charges the relief in full; the mixed base keeps a damped copy of the shading's shape
+    from torchiid.priors.matting import matting_stencil
+    from torchiid.stages.shading import matting_base
+
+    h = w = 32
+    yy, xx = torch.meshgrid(
+        torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij"
+    )
+    bump = torch.exp(-((xx - 16) ** 2 + (yy - 16) ** 2) / (2 * 4.0**2))
+    shade = (0.5 + 0.3 * bump + 0.2 * xx / w).view(1, 1, h, w)
+    albedo = torch.tensor([0.8, 0.7, 0.6], dtype=torch.float64).view(1, 3, 1, 1).expand(1, 3, h, w)
+    s = shade.log()
+
+    def charge(mix):
+        base = matting_base(albedo * shade, albedo.clone(), None, 1.0, mix)
+        return float(matting_stencil(base).energy(s))
+
+    assert charge(0.75) < 0.1 * charge(1.0)
+    assert charge(0.75) < charge(0.9) < charge(1.0)

@@ -60,8 +60,9 @@ class ShadingProblem:
         patch_features: ``(B, P, D)`` patch descriptors ``f_b`` for ``S_c``.
         similarity: ``(B, 4, H, W)`` proposal similarities ``<g_i, g_j>`` on the 3x3 stencil
             for ``S_m``.
-        base_image: ``(B, 3, H, W)`` base of the matting Laplacian ``S_p`` (the previous
-            reflectance); ``None``: the Gaussian-smoothed image.
+        base_image: ``(B, 3, H, W)`` the previous reflectance, from which the base of the
+            matting Laplacian ``S_p`` is made (``ShadingOptions.base_mix``); ``None``: the
+            Gaussian-smoothed image is the base.
         mask: ``(B, 1, H, W)`` bool region to decompose, or ``None``.
 
     A prior whose tensors are ``None`` is off whatever its weight.
@@ -141,6 +142,9 @@ class ShadingOptions:
             (:func:`~torchiid.priors.shading_terms.pixel_confidence`); both 0: off.
         clip_level: see ``dark_level``.
         base_sigma: Gaussian σ (px) of the default matting base image.
+        base_mix: the previous reflectance's share of the matting base when one is given
+            (alternations 2..k): the base is ``R^base_mix · I_σ^(1 − base_mix)`` (1: the
+            paper's, ``R`` itself; see :func:`~torchiid.stages.shading.matting_base`).
         lle_k: LLE neighbours per patch (10).
         lle_reg: LLE Gram regulariser.
         lle_neighbours: ``"knn"`` or ``"random"`` (paper Table 2).
@@ -173,6 +177,7 @@ class ShadingOptions:
     dark_level: float = 0.0
     clip_level: float = 0.0
     base_sigma: float = 1.0
+    base_mix: float = 1.0
     lle_k: int = 10
     lle_reg: float = 1e-3
     lle_neighbours: str = "knn"
@@ -189,6 +194,8 @@ class ShadingOptions:
         for name in ("t_i", "t_e", "t_d", "t_h"):
             if not getattr(self, name) >= 0:
                 raise ParameterError(f"{name} must be >= 0 (0: off), got {getattr(self, name)}")
+        if not 0 <= self.base_mix <= 1:
+            raise ParameterError(f"base_mix must be in [0, 1], got {self.base_mix}")
         for name in ("anchor", "tol"):
             if not getattr(self, name) > 0:
                 raise ParameterError(f"{name} must be > 0, got {getattr(self, name)}")

@@ -67,6 +67,7 @@ _MULTIGRID_BUDGET = 100
 converges in 10–30 on photographs; far more means it stagnates)."""
 
 __all__ = [
+    "matting_base",
     "AnchoredSystem",
     "anchored_system",
     "ShadingDiagnostics",
@@ -200,6 +201,35 @@ def _coarse_problem(problem: ShadingProblem, base_sigma: float) -> ShadingProble
         base_image=None if base is None else down(base),
         mask=coarse_mask,
     )
+
+
+def matting_base(
+    image: torch.Tensor,
+    reflectance: torch.Tensor,
+    mask: torch.Tensor | None,
+    sigma: float,
+    mix: float,
+) -> torch.Tensor:
+    """The base image of ``S_p`` in alternations 2..k: ``R^mix · I_σ^(1 − mix)`` per channel.
+
+    The paper takes the previous reflectance ``R`` (``mix = 1``). Where ``R`` is flat the
+    matting Laplacian then asks for locally constant shading, so the shading detail the
+    previous alternation found (relief, bumps: the Retinex term ties them to the
+    shading) is pushed into the reflectance at the next one. Mixing in the Gaussian-smoothed
+    image ``I_σ`` (the first alternation's base), as a weighted geometric mean, keeps a damped
+    copy of the shading's edges in the base (``R^β I^(1−β) ≈ R S^(1−β)``), so the term no
+    longer works against them. ``mix = 0``: the smoothed image in every alternation.
+
+    Shape:
+        image, reflectance ``(B, 3, H, W)`` (linear), mask ``(B, 1, H, W)`` or ``None``.
+    """
+    if mix >= 1:
+        return reflectance
+    smooth = _default_base(image, mask, sigma)
+    if mix <= 0:
+        return smooth
+    floor = torch.finfo(image.dtype).tiny ** 0.25  # keeps the powers finite at black pixels
+    return reflectance.clamp_min(floor).pow(mix) * smooth.clamp_min(floor).pow(1.0 - mix)
 
 
 def _default_base(image: torch.Tensor, mask: torch.Tensor | None, sigma: float) -> torch.Tensor:
@@ -425,7 +455,7 @@ def build_shading_system(
             lambda: matting_stencil(
                 _default_base(image, mask, o.base_sigma)
                 if base_image is None
-                else base_image.to(dt),
+                else matting_base(image, base_image.to(dt), mask, o.base_sigma, o.base_mix),
                 eps=o.matting_eps,
                 mask=mask,
             ),
