@@ -2,6 +2,7 @@ import pytest
 import torch
 
 from torchiid.core.exceptions import ConvergenceWarning, ImageError, ParameterError, ShapeError
+from torchiid.params import Parameters
 from torchiid.priors.lle import patch_rgb_features
 from torchiid.priors.shading_terms import shading_stencil
 from torchiid.stages.config import ShadingOptions, ShadingProblem, ShadingWeights
@@ -395,18 +396,48 @@ def test_coarse_levels_reuse_the_lle_neighbourhood_and_change_nothing(masked, mo
 
 
 def test_the_mixed_matting_base_is_the_weighted_geometric_mean():
+    from torchiid.priors.matting import smooth_base
     from torchiid.stages.shading import matting_base
 
     g = torch.Generator().manual_seed(0)
     image = torch.rand(1, 3, 12, 14, generator=g, dtype=torch.float64) + 0.1
     refl = torch.rand(1, 3, 12, 14, generator=g, dtype=torch.float64) + 0.1
-    smooth = matting_base(image, refl, None, 1.0, 0.0)
-    assert not torch.equal(smooth, image)  # the first alternation's smoothed image
-    assert torch.equal(matting_base(image, refl, None, 1.0, 1.0), refl)
+    smooth = smooth_base(image, 1.0)  # the first alternation's base
+    assert torch.allclose(matting_base(image, refl, None, 1.0, 0.0), smooth)
+    assert torch.allclose(matting_base(image, refl, None, 1.0, 0.75), refl**0.75 * smooth**0.25)
+    # black (and negative) reflectance values give a finite, positive base
+    refl[..., :3, :3] = 0.0
+    refl[..., -1, -1] = -0.2
     mixed = matting_base(image, refl, None, 1.0, 0.75)
-    assert torch.allclose(mixed, refl**0.75 * smooth**0.25)
+    assert bool(torch.isfinite(mixed).all()) and float(mixed.min()) > 0
     with pytest.raises(ParameterError, match="base_mix"):
         ShadingOptions(base_mix=1.5)
+    with pytest.raises(ParameterError, match="base_mix"):
+        Parameters(base_mix=float("nan"))
+
+
+def test_base_mix_leaves_the_first_alternation_and_its_coarse_levels_alone():
+    # without a previous reflectance the base is the smoothed image whatever base_mix; the
+    # coarse-to-fine start of a cold Jacobi solve must not mix the smoothed image with itself
+    s = mondrian(48, 64, batch=1, seed=2)
+    problem = ShadingProblem(s.image)
+    weights = ShadingWeights(lambda_c=0, lambda_m=0)
+    results = [
+        solve_shading(
+            problem, weights, ShadingOptions(levels=3, max_iter=20, base_mix=mix, warn=False)
+        )
+        for mix in (1.0, 0.75)
+    ]
+    assert torch.equal(results[0].log_shading, results[1].log_shading)
+    # with a previous reflectance the mix changes the solve
+    given = problem.replace(base_image=s.reflectance)
+    a, b = (
+        solve_shading(
+            given, weights, ShadingOptions(levels=3, max_iter=20, base_mix=mix, warn=False)
+        )
+        for mix in (1.0, 0.75)
+    )
+    assert not torch.allclose(a.log_shading, b.log_shading)
 
 
 def test_the_mixed_matting_base_does_not_fight_shading_relief_on_a_flat_albedo():

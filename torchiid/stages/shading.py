@@ -169,10 +169,12 @@ class ShadingSystemCache:
     neighbourhood: LLENeighbourhood = field(default_factory=LLENeighbourhood)
 
 
-def _coarse_problem(problem: ShadingProblem, base_sigma: float) -> ShadingProblem:
+def _coarse_problem(problem: ShadingProblem, base_sigma: float, base_mix: float) -> ShadingProblem:
     """Every input of the solve at half resolution (2x2 box averages).
 
-    An approximation, used only to warm-start the full-resolution solve.
+    An approximation, used only to warm-start the full-resolution solve. Its ``base_image`` is
+    the full-resolution matting base itself, downsampled (solve it with ``base_mix = 1``, so it
+    is not mixed again).
     """
     image, mask = problem.image, problem.mask
     h2, w2 = image.shape[-2] // 2, image.shape[-1] // 2
@@ -183,6 +185,8 @@ def _coarse_problem(problem: ShadingProblem, base_sigma: float) -> ShadingProble
     base = problem.base_image
     if base is None and base_sigma > 0:
         base = _default_base(image, mask, base_sigma)
+    elif base is not None:
+        base = matting_base(image, base.to(image.dtype), mask, base_sigma, base_mix)
     coarse_mask = None
     if mask is not None:
         cm = down(mask.to(image.dtype)) > 0.5
@@ -228,7 +232,9 @@ def matting_base(
     smooth = _default_base(image, mask, sigma)
     if mix <= 0:
         return smooth
-    floor = torch.finfo(image.dtype).tiny ** 0.25  # keeps the powers finite at black pixels
+    # fractional powers need positive bases: black (or, from a caller, negative) values are
+    # raised to a floor far below any visible level
+    floor = max(1e-8, torch.finfo(image.dtype).tiny)
     return reflectance.clamp_min(floor).pow(mix) * smooth.clamp_min(floor).pow(1.0 - mix)
 
 
@@ -577,9 +583,9 @@ def solve_shading(
         max_iter = o.warm_max_iter or o.max_iter
     elif o.preconditioner == "jacobi" and o.levels > 1 and min(h, w) >= 2 * _MIN_COARSE:
         sub = solve_shading(
-            _coarse_problem(problem, o.base_sigma),
+            _coarse_problem(problem, o.base_sigma, o.base_mix),
             weights,
-            o.replace(base_sigma=o.base_sigma / 2, levels=o.levels - 1, warn=False),
+            o.replace(base_sigma=o.base_sigma / 2, base_mix=1.0, levels=o.levels - 1, warn=False),
             cache=ShadingSystemCache(neighbourhood=cache.neighbourhood),
         )
         x0 = F.interpolate(sub.log_shading, size=(h, w), mode="bilinear", align_corners=False)
