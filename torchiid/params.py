@@ -141,10 +141,11 @@ class Parameters:
         bregman_cg_iter: CG iterations of each Split-Bregman ``z`` step (an inexact solve; the
             Bregman updates absorb the error, Goldstein & Osher use one Gauss–Seidel sweep).
         bregman_tol: relative change of ``z`` at which Split-Bregman stops.
-        bregman_gap_tol: relative duality gap at which Split-Bregman stops (measured every 5
-            iterations; a bound on how far Eq. 12's objective is above its minimum, relatively,
-            or relative to a thousandth of ``γ_a ‖ρ‖²`` where the objective is smaller than
-            that: nearly flat images); 0: stop on ``bregman_tol`` instead.
+        bregman_gap_tol: relative duality gap at which Split-Bregman stops (measured at
+            most every 5 iterations, sooner where its rate predicts the tolerance; a bound on
+            how far Eq. 12's objective is above its minimum, relatively, or relative to a
+            thousandth of ``γ_a ‖ρ‖²`` where the objective is smaller than that: nearly flat
+            images); 0: stop on ``bregman_tol`` instead.
         bregman_theta_floor: with ``bregman_gap_tol``, residual balancing may lower the
             penalty ``θ`` to ``θ · bregman_theta_floor`` (1: a fixed ``θ``).
         bregman_cg_tol: relative residual at which each ``z`` step's CG stops.

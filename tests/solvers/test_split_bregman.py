@@ -370,3 +370,51 @@ def test_certified_distance_bounds_the_distance_to_the_minimiser(scale):
         if tol == 1e-1:
             # and not a loose one here (measured: 0.141 against 0.124)
             assert bound <= 1.5 * true
+
+
+def test_next_measurement_of_the_gap_comes_where_its_rate_predicts():
+    from torchiid.solvers.split_bregman import _next_check
+
+    on = torch.tensor([True, True])
+    # no earlier measurement: the full interval
+    assert _next_check(torch.tensor([0.1, 0.2]), None, 5, on, 1e-3, 5) == 5
+    # halving per iteration from 0.08 (iteration 5) to 0.02 (iteration 7): 0.02 -> 0.005 in
+    # 2 more; the first image to get there decides
+    before, now = torch.tensor([0.08, 0.8]), torch.tensor([0.02, 0.2])
+    assert _next_check(now, (5, before), 7, on, 0.005, 5) == 2
+    # at least one iteration, at most check_every
+    assert _next_check(torch.tensor([0.0051, 1.0]), (6, torch.tensor([0.01, 1.0])), 7, on,
+                       0.005, 5) == 1  # fmt: skip
+    assert _next_check(torch.tensor([0.9, 0.9]), (5, torch.tensor([0.91, 0.91])), 10, on,
+                       0.005, 5) == 5  # fmt: skip
+    # a gap that grew, or images that stopped, give no rate
+    assert _next_check(now, (5, now * 0.5), 7, on, 0.005, 5) == 5
+    assert _next_check(now, (5, before), 7, torch.tensor([False, False]), 0.005, 5) == 5
+
+
+def test_adaptive_measurements_stop_near_the_first_iteration_below_the_tolerance():
+    # measuring the gap at every iteration finds the first one below the tolerance; the
+    # extrapolated schedule (at most every 5) must stop there or just after, with fewer
+    # measurements than iterations
+    rho, terms, gam = _gap_problem()
+    kw = dict(gamma_a=1.0, theta=1.0, max_outer=3000, cg_tol=1e-10, cg_max_iter=100)
+    measured = []
+    real = StencilL1Term.bregman_step
+
+    def counting(self, *a, stats=False, **k):
+        measured.append(stats)
+        return real(self, *a, stats=stats, **k)
+
+    for tol in (1e-2, 1e-3):
+        every = split_bregman(rho, terms, gam, gap_tol=tol, check_every=1, **kw)
+        first = int(every.outer_iterations[0])
+        measured.clear()
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(StencilL1Term, "bregman_step", counting)
+            res = split_bregman(rho, terms, gam, gap_tol=tol, check_every=5, **kw)
+        n = int(res.outer_iterations[0])
+        assert bool(res.converged.all()) and float(res.gap[0]) < tol
+        assert first <= n <= first + 2, (first, n)
+        # (measured: every iteration stops at 9 and 18, this schedule at 10 and 18 after 2 and 5
+        # measurements; a fixed interval of 5 stops at the next multiple of 5, 10 and 20)
+        assert sum(measured) < n / 2

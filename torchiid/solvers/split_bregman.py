@@ -135,7 +135,11 @@ def split_bregman(
             below a thousandth of the data's energy ``J(0) = γ_a ‖ρ‖²`` it is absolute.
             Needs terms with ``bregman_stats`` (the difference terms); with others the
             change rule applies.
-        check_every: iterations between two measurements of the gap.
+        check_every: the most iterations between two measurements of the gap. From the
+            second measurement on, the next one comes when the gap, shrinking at the rate
+            measured between the last two, would reach ``gap_tol`` (at least 1 iteration
+            later, at most ``check_every``), so a solve overshoots its tolerance by fewer
+            iterations than a fixed interval allows.
         theta_range: ``(θ_lo, θ_hi)``: with ``gap_tol``, residual balancing (Boyd et al. 2011,
             §3.4.1) at every measurement: halve ``θ`` (down to ``θ_lo``) when the relative dual
             residual exceeds ``balance[0]`` times the relative primal one, double it (up to
@@ -249,6 +253,8 @@ def split_bregman(
 
     cg_total = 0
     last = None  # the last z step's (rhs, PCGResult), for its residual
+    next_check = check_every  # the iteration (1-based) of the next measurement of the gap
+    previous = None  # the last measurement: (iteration, gaps)
     for it in range(max_outer):
         b_flat = rhs.reshape(bsz * c, 1, h, w)
         r0 = None
@@ -276,7 +282,7 @@ def split_bregman(
         outer = outer + active.long()
         # every check_every iterations, and at the last update before the cap (so a capped
         # solve reports the gap of the z it returns, or of the one before)
-        check = gap_mode and ((it + 1) % check_every == 0 or it == max_outer - 2)
+        check = gap_mode and (it + 1 == next_check or it == max_outer - 2)
         if it == max_outer - 1:
             # last iteration: only the objective is needed, skip the Bregman update
             obj_new = None
@@ -300,6 +306,9 @@ def split_bregman(
                 scale = torch.maximum(primal_obj, floor).clamp_min(torch.finfo(rho.dtype).tiny)
                 now = (primal_obj - dual_obj) / scale
                 gap = torch.where(active, now, gap)
+                wait = _next_check(now, previous, it + 1, active, gap_tol, check_every)
+                next_check = it + 1 + wait
+                previous = (it + 1, now)
                 # strong convexity: γ_a ‖z − z*‖² <= J(z) − J(z*) <= J(z) − D(p), relative to
                 # ‖ρ‖: ‖z − z*‖² / ‖ρ‖² <= (J(z) − D(p)) / J(0)
                 excess = (primal_obj - dual_obj).clamp_min(0.0)
@@ -352,6 +361,26 @@ def split_bregman(
         theta=theta,
         distance=distance,
     )
+
+
+def _next_check(now, previous, iteration, active, gap_tol, check_every) -> int:
+    """Iterations until the next measurement of the duality gap (1 .. ``check_every``).
+
+    The gaps ``now`` of the images still running are extrapolated at the rate measured since
+    the ``previous`` measurement ``(iteration, gaps)``, ``r = (now / before)^(1 / Δ)`` per
+    iteration; the next measurement comes when the first of them would reach ``gap_tol``.
+    Without a previous measurement, or where no image's gap shrank, ``check_every``.
+    """
+    if previous is None:
+        return check_every
+    then, before = previous
+    running = active & (now >= gap_tol) & (now > 0) & (before > now)
+    if not bool(running.any()):
+        return check_every
+    # log of the per-iteration rate (< 0) and of the remaining factor (<= 0)
+    log_rate = (now[running] / before[running]).log() / (iteration - then)
+    need = ((gap_tol / now[running]).log() / log_rate).ceil()
+    return int(min(max(float(need.min()), 1.0), float(check_every)))
 
 
 def change_penalty(rhs, data_rhs, g_adj, states, active_terms, lams, new_lams, ratio):

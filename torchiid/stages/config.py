@@ -362,7 +362,8 @@ class ReflectanceOptions:
         eps: floor of ``Σ_c R_c`` in the shading ratio.
         gap_tol: stop Split-Bregman when its relative duality gap (an upper bound on how far
             Eq. 12's objective is above its minimum, relatively) falls below this, measured
-            every 5 iterations; 0: stop on the change of ``z`` (``tol``).
+            at most every 5 iterations (sooner where the gap's rate predicts the tolerance);
+            0: stop on the change of ``z`` (``tol``).
         theta_floor: with ``gap_tol``, residual balancing may lower ``θ`` down to ``θ ·
             theta_floor`` (1: a fixed ``θ``); a warm-started solve starts at the last solve's.
     """
