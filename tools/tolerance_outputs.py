@@ -1,22 +1,23 @@
 """How much the ``converged`` preset's outputs move with Split-Bregman's duality-gap tolerance.
 
 Usage: ``python tools/tolerance_outputs.py PHOTO [PHOTO ...] [--gaps 0.005 0.02 0.05]
-[--reference 0.0005] [--early GAP]``
+[--reference 0.0005] [--early GAP [GAP ...]]``
 
 Decomposes every photo (sRGB decoded to linear, as ``torchiid decompose`` reads it) with
 ``--preset converged`` once per tolerance (``bregman_gap_tol``)
 and once with the much smaller ``--reference`` tolerance, and prints, per photo and tolerance,
-the seconds, the Split-Bregman iterations over the five alternations, and how far the files
+the seconds, the Split-Bregman iterations (over the five alternations, and per alternation),
+and how far the files
 a user opens are from the reference's: the 8-bit sRGB reflectance (the ``-reflectance.png``
 encoding; largest difference in code values, 99.9th percentile, and the share of pixel
 values that differ by more than one code) and the shading, as relative differences of the
 linear shading (99.9th percentile and largest). A tolerance is loose enough to use where the
 reflectance stays within about one code value of the reference's everywhere but a few pixels.
 
-``--early GAP``: a study of a looser tolerance for the intermediate alternations only. The
-Split-Bregman solves of alternations 1 .. k − 1 stop at ``GAP`` and only the last one at the
-row's tolerance (the reference keeps its tolerance everywhere). It wraps the pipeline's
-``solve_reflectance``; no preset does this.
+``--early GAP ...``: a study of a looser tolerance for the intermediate alternations only. After
+each tolerance's row come rows where the Split-Bregman solves of alternations 1 .. k − 1 stop
+at ``GAP`` and only the last one at the row's tolerance (the reference keeps its tolerance
+everywhere). It wraps the pipeline's ``solve_reflectance``; no preset does this.
 """
 
 from __future__ import annotations
@@ -32,7 +33,9 @@ def main() -> None:
     ap.add_argument("photos", nargs="+")
     ap.add_argument("--gaps", type=float, nargs="+", default=[0.005, 0.02, 0.05])
     ap.add_argument("--reference", type=float, default=0.0005)
-    ap.add_argument("--early", type=float, default=None, help="gap of alternations 1..k-1")
+    ap.add_argument(
+        "--early", type=float, nargs="*", default=[], help="gaps of alternations 1..k-1"
+    )
     args = ap.parse_args()
     import dataclasses
 
@@ -60,8 +63,8 @@ def main() -> None:
         t0 = time.perf_counter()
         out = model.decompose(image, params)
         seconds = time.perf_counter() - t0
-        outer = sum(r.iterations for r in out.solves if r.stage == "reflectance")
-        return out, seconds, outer
+        outer = [r.iterations for r in out.solves if r.stage == "reflectance"]
+        return out, seconds, f"{sum(outer)} ({', '.join(map(str, outer))})"
 
     def code(r):
         return (linear_to_srgb(r.clamp(0, 1)) * 255).round()
@@ -78,17 +81,19 @@ def main() -> None:
         name = path.rsplit("/", 1)[-1]
         print(f"| {name} | {args.reference:g} (reference) | {ref_s:.1f} | {ref_n} | | | |")
         for gap in args.gaps:
-            out, s, n = run(image, gap, args.early)
-            diff = (code(out.reflectance) - ref_code).abs().flatten()
-            rel = ((out.shading - ref.shading).abs() / ref.shading.clamp_min(1e-6)).flatten()
-            print(
-                f"| {name} | {gap:g}{'' if args.early is None else f' (early {args.early:g})'}"
-                f" | {s:.1f} | {n} | {float(diff.max()):.0f} / "
-                f"{np.quantile(diff.numpy(), 0.999):.0f} | "
-                f"{float((diff > 1).float().mean()) * 100:.3f}% | "
-                f"{np.quantile(rel.numpy(), 0.999):.4f} / {float(rel.max()):.4f} |",
-                flush=True,
-            )
+            for early in [None, *args.early]:
+                out, s, n = run(image, gap, early)
+                diff = (code(out.reflectance) - ref_code).abs().flatten()
+                rel = ((out.shading - ref.shading).abs() / ref.shading.clamp_min(1e-6)).flatten()
+                label = f"{gap:g}" if early is None else f"{gap:g}, earlier alternations {early:g}"
+                print(
+                    f"| {name} | {label} | {s:.1f} | {n} | {float(diff.max()):.0f} / "
+                    f"{np.quantile(diff.numpy(), 0.999):.0f} | "
+                    f"{float((diff > 1).float().mean()) * 100:.3f}% | "
+                    f"{np.quantile(rel.numpy(), 0.999) * 100:.1f}% / "
+                    f"{float(rel.max()) * 100:.0f}% |",
+                    flush=True,
+                )
 
 
 if __name__ == "__main__":

@@ -40,6 +40,7 @@ change of the right-hand side (``b' − A z = (b − A z) + (b' − b)``), inste
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -130,16 +131,17 @@ def split_bregman(
         track_objective: evaluate ``J`` after every iteration (the L1 norms cost about a third
             of a Bregman update; the pipeline turns this off).
         gap_tol: stop each image when its relative duality gap falls below this, measured
-            every ``check_every`` iterations, instead of on the change of ``z`` (``tol`` is
-            then unused). The gap is ``J(z) − D(p)`` over ``max(J(z), GAP_FLOOR · J(0))``:
+            at most every ``check_every`` iterations, instead of on the change of ``z`` (``tol``
+            is then unused). The gap is ``J(z) − D(p)`` over ``max(J(z), GAP_FLOOR · J(0))``:
             below a thousandth of the data's energy ``J(0) = γ_a ‖ρ‖²`` it is absolute.
             Needs terms with ``bregman_stats`` (the difference terms); with others the
             change rule applies.
         check_every: the most iterations between two measurements of the gap. From the
             second measurement on, the next one comes when the gap, shrinking at the rate
             measured between the last two, would reach ``gap_tol`` (at least 1 iteration
-            later, at most ``check_every``), so a solve overshoots its tolerance by fewer
-            iterations than a fixed interval allows.
+            later, at most ``check_every``), so a solve usually runs fewer iterations past
+            its tolerance than a fixed interval would (in a batch, the image predicted to get
+            there first sets the schedule).
         theta_range: ``(θ_lo, θ_hi)``: with ``gap_tol``, residual balancing (Boyd et al. 2011,
             §3.4.1) at every measurement: halve ``θ`` (down to ``θ_lo``) when the relative dual
             residual exceeds ``balance[0]`` times the relative primal one, double it (up to
@@ -280,8 +282,9 @@ def split_bregman(
         change = torch.where(active, step, change)
         z = torch.where(active.view(-1, 1, 1, 1), z_new, z)
         outer = outer + active.long()
-        # every check_every iterations, and at the last update before the cap (so a capped
-        # solve reports the gap of the z it returns, or of the one before)
+        # when due (_next_check: at most every check_every iterations), and at the last update
+        # before the cap (so a capped solve reports the gap of the z it returns, or of the one
+        # before)
         check = gap_mode and (it + 1 == next_check or it == max_outer - 2)
         if it == max_outer - 1:
             # last iteration: only the objective is needed, skip the Bregman update
@@ -379,8 +382,10 @@ def _next_check(now, previous, iteration, active, gap_tol, check_every) -> int:
         return check_every
     # log of the per-iteration rate (< 0) and of the remaining factor (<= 0)
     log_rate = (now[running] / before[running]).log() / (iteration - then)
-    need = ((gap_tol / now[running]).log() / log_rate).ceil()
-    return int(min(max(float(need.min()), 1.0), float(check_every)))
+    need = float(((gap_tol / now[running]).log() / log_rate).ceil().min())
+    if not math.isfinite(need):  # a rate that rounds to 1: no prediction
+        return check_every
+    return int(min(max(need, 1.0), float(check_every)))
 
 
 def change_penalty(rhs, data_rhs, g_adj, states, active_terms, lams, new_lams, ratio):
