@@ -129,3 +129,61 @@ def test_stage_configuration_carries_switches_and_schedule():
     assert (ro.window, ro.value_scale, ro.max_outer, ro.cg_max_iter) == (11, 255.0, 2, 3)
     with pytest.raises(ParameterError, match="window must be odd"):
         Parameters(window=10)
+
+
+#: the parameters at the architecture step (cd5b0ce), from which on a parameter file names
+#: every parameter but those added since (ADDED_SINCE)
+ARCHITECTURE_STEP = {
+    "albedo_quantile", "anchor", "base_sigma", "bregman_cg_iter", "bregman_cg_tol",
+    "bregman_iter", "bregman_tol", "cg_max_iter", "cg_tol", "clip_level", "coarse_levels",
+    "colour_weights", "dark_eps", "dark_level", "feature_backend", "feature_mode", "gamma_a",
+    "gamma_g", "gamma_l", "gamma_m", "guide_eps", "guide_radius", "iterations", "lambda_g",
+    "lambda_l", "lambda_m", "lle_features", "lle_k", "lle_neighbours", "lle_reg", "matting_eps",
+    "max_side", "patch_size", "patch_stride", "proposal_pca_dim", "seed", "segment_scale",
+    "shading_floor", "stage1", "stage2", "t", "t_b", "t_c", "t_g", "t_m", "tau", "theta",
+    "use_rg", "use_rl", "use_rm", "use_sc", "use_sl", "use_sm", "use_sp", "value_scale",
+    "view_quantile", "warm_cg_max_iter", "window",
+}  # fmt: skip
+
+
+def test_every_new_parameter_records_what_ran_before_it():
+    from torchiid.params import ADDED_SINCE
+
+    names = set(Parameters().to_dict())
+    # a parameter added without an entry would make every later complete file look partial
+    assert names == ARCHITECTURE_STEP | ADDED_SINCE.keys()
+    assert not ARCHITECTURE_STEP & ADDED_SINCE.keys()
+    # the recorded values are valid, and each is the one that switches its feature off
+    before = Parameters(**ADDED_SINCE)
+    assert before.shading_options().base_mix == 1.0 and before.t_e == 0.0
+
+
+def test_a_complete_file_from_an_earlier_version_replays_what_it_ran(tmp_path, caplog):
+    # a converged-preset file written before base_mix and the duality gap existed: it names
+    # every other parameter (values as written), so the missing ones take what ran then, not
+    # the preset's (base_mix 0.75, gap 0.5%)
+    record = Parameters.preset("converged").to_dict()
+    for key in ("base_mix", "bregman_gap_tol", "bregman_theta_floor"):
+        del record[key]
+    path = tmp_path / "old-params.json"
+    path.write_text(json.dumps(record))
+    base = Parameters.preset("converged")
+    with caplog.at_level("WARNING", logger="torchiid.params"):
+        p = Parameters.from_json(path, base=base)
+    assert (p.base_mix, p.bregman_gap_tol, p.bregman_theta_floor) == (1.0, 0.0, 1.0)
+    assert p.replace(base_mix=0.75, bregman_gap_tol=0.005, bregman_theta_floor=0.25) == base
+    assert "earlier torchiid" in caplog.text and "base_mix 1.0" in caplog.text
+    # a file that also leaves out an older parameter is a partial one: the base fills in
+    del record["tau"]
+    path.write_text(json.dumps(record))
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="torchiid.params"):
+        p = Parameters.from_json(path, base=base)
+    assert p == base and caplog.text == ""
+    # a complete file of today, and a file of a few overrides, are read as they are
+    path.write_text(Parameters.preset("converged").to_json())
+    with caplog.at_level("WARNING", logger="torchiid.params"):
+        assert Parameters.from_json(path, base=Parameters()) == base
+        path.write_text(json.dumps({"lambda_l": 0.5}))
+        assert Parameters.from_json(path, base=base) == base.replace(lambda_l=0.5)
+    assert caplog.text == ""

@@ -4,8 +4,10 @@
 :func:`torchiid.decompose` does by default (the ``default`` preset); ``Parameters.preset("paper")``
 gives the paper's values with the most thorough solver settings (§3.4 and Table 1).
 :meth:`Parameters.to_json` / :meth:`Parameters.from_json` round-trip a parameter file, rejecting
-unknown keys by name, and :meth:`Parameters.variant` sets every switch of the paper's ablation
-variants v1–v7 (Table 3) and baselines 1–3 (§5).
+unknown keys by name (a complete file written by an earlier version replays with the values
+that version ran for the parameters added since, :data:`ADDED_SINCE`), and
+:meth:`Parameters.variant` sets every switch of the paper's ablation variants v1–v7 (Table 3)
+and baselines 1–3 (§5).
 
 The stages do not read ``Parameters``: :meth:`Parameters.shading_weights`,
 :meth:`~Parameters.shading_options`, :meth:`~Parameters.reflectance_weights` and
@@ -18,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import os
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -31,7 +34,9 @@ from torchiid.stages.config import (
     ShadingWeights,
 )
 
-__all__ = ["Parameters", "PRESETS", "VARIANTS"]
+logger = logging.getLogger(__name__)
+
+__all__ = ["Parameters", "PRESETS", "VARIANTS", "ADDED_SINCE"]
 
 
 @dataclass(frozen=True)
@@ -500,6 +505,12 @@ class Parameters:
     def from_json(cls, path: str | os.PathLike, base: Parameters | None = None) -> Parameters:
         """Read a JSON file; keys it does not name keep the values of ``base`` (or defaults).
 
+        A file that names every parameter except some of those added since the parameter set
+        took its present shape (:data:`ADDED_SINCE`) is a complete record from an earlier version
+        (as the CLI's ``-params.json``): those take the values that version ran, not
+        ``base``'s, and a warning names them (a file written before ``base_mix`` existed
+        replays the paper's matting base, ``base_mix`` 1, not the preset's mix).
+
         Raises:
             ParameterError: the file is missing or unreadable, not UTF-8 text, not a JSON
                 object, or holds an unknown key, a value of the wrong type or a value out of
@@ -544,9 +555,19 @@ class Parameters:
                 f"{kind.get(type(data), 'number')}"
             )
         start = base.to_dict() if base is not None else {}
-        start.update(data)
         try:
             cls._check_keys(data)
+            older = _older_record(data)
+            if older:
+                logger.warning(
+                    "%s: a parameter file from an earlier torchiid (it names every parameter "
+                    "but %s); those take the values that version ran: %s",
+                    path,
+                    ", ".join(sorted(older)),
+                    ", ".join(f"{k} {v!r}" for k, v in sorted(older.items())),
+                )
+                start.update(older)
+            start.update(data)
             return cls(**start)
         except ParameterError as exc:
             raise ParameterError(f"{path}: {exc}") from None
@@ -566,6 +587,40 @@ class Parameters:
                 tmp.unlink(missing_ok=True)
                 raise
         return text
+
+
+#: Parameters added since the parameter set took its present shape (the architecture step:
+#: older files lack other parameters too and count as partial), with the value that runs what
+#: the method did before each existed (a switch off, the paper's choice). A file naming every
+#: other parameter but not some of these is an earlier version's record. Each new parameter
+#: must be added here with such a value (``tests/test_params.py`` checks that every parameter
+#: is in the list or in the record of that step).
+ADDED_SINCE: dict[str, Any] = {
+    "shading_preconditioner": "jacobi",
+    "t_i": 0.0,
+    "converge": False,
+    "bregman_warm_state": False,
+    "luminance_weight": None,
+    "lambda_s": 0.0,
+    "t_e": 0.0,
+    "t_d": 0.0,
+    "t_h": 0.0,
+    "bregman_gap_tol": 0.0,
+    "bregman_theta_floor": 1.0,
+    "base_mix": 1.0,
+}
+
+
+def _older_record(data: dict[str, Any]) -> dict[str, Any]:
+    """The :data:`ADDED_SINCE` values for a complete record from an earlier version, or ``{}``.
+
+    Complete: it names every parameter that is not in :data:`ADDED_SINCE` (so it is no
+    partial set of overrides) and leaves out at least one that is.
+    """
+    missing = {f.name for f in fields(Parameters)} - set(data)
+    if not missing or not missing <= ADDED_SINCE.keys():
+        return {}
+    return {k: ADDED_SINCE[k] for k in missing}
 
 
 #: Named parameter sets. ``default`` (= ``Parameters()``): tuned on the MIT-Berkeley objects for
