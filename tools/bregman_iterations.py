@@ -11,8 +11,8 @@ and resized to ``--size`` as ``tools/bench_decompose.py`` makes them (none: six 
 Prints one line per photo and parameter set, then per set the total iterations, the wall time
 and whether every solve converged.
 
-The counts do not depend on the machine or its load (the result of a solve does not depend on
-the number of threads), so two sets can run at once (``OMP_NUM_THREADS=1``); the wall times
+The counts do not depend on the load or on the number of threads (the result of a solve does
+not), so two sets can run at once (``OMP_NUM_THREADS=1``); the wall times
 then only indicate the cost. Iterations are what a change of the solver's schedule or penalty
 saves; the seconds follow them.
 """
