@@ -561,7 +561,8 @@ class Parameters:
             if older:
                 logger.warning(
                     "%s: a parameter file from an earlier torchiid (it names every parameter "
-                    "but %s); those take the values that version ran: %s",
+                    "but %s); those take the values that version ran: %s (add them to the "
+                    "file to choose others)",
                     path,
                     ", ".join(sorted(older)),
                     ", ".join(f"{k} {v!r}" for k, v in sorted(older.items())),
