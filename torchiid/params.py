@@ -630,7 +630,9 @@ def _older_record(data: dict[str, Any]) -> dict[str, Any]:
 #: iterations of 3 CG steps (an inexact, early-stopped L1 solve: more iterations flatten further
 #: and scored worse on MIT and on noisy synthetic Mondrians). Its shading energy adds plain
 #: smoothness ``S_s`` (``lambda_s`` 0.01) and halves ``lambda_m`` (0.01): MIT 0.0220 -> 0.0211;
-#: ``S_l`` does not tie pixels beside a colour edge (``t_e`` 0.015, stop 23): 0.0211 -> 0.0203.
+#: ``S_l`` does not tie pixels beside a colour edge (``t_e`` 0.015, stop 23): 0.0211 -> 0.0203;
+#: the matting base of alternations 2-5 mixes in the smoothed image (``base_mix`` 0.5, stop 31):
+#: 0.0203 -> 0.0201.
 #: ``paper``: the paper's energy (``lambda_m`` 0.02, no ``S_s``, no ``t_e``) with the solvers at
 #: their most thorough (300 PCG iterations, 4 x 5 Split-Bregman steps). The paper's other values
 #: (§4: λ_g, λ_l, γ, θ, τ, t, k = 5, 60/30 px patches) are in both. Mean LMSE in the README.
@@ -639,7 +641,8 @@ PRESETS: dict[str, dict[str, Any]] = {
     # printed matter (documents, labels, packaging, posters): S_l does not tie pixels on thin
     # strokes either (t_h 0.5), so black text on white paper stays in the reflectance (stop 23,
     # tools/print_check.py: ink/paper reflectance 0.996 -> 0.168, true 0.036). Thin grooves and
-    # fine texture go to the reflectance too: MIT 0.0203 -> 0.0221 (teabag2 0.0186 -> 0.0125).
+    # fine texture go to the reflectance too: MIT 0.0203 -> 0.0221 (teabag2 0.0186 -> 0.0125);
+    # 0.0218 with the default's base_mix of stop 31.
     "print": {"t_h": 0.5},
     "paper": {
         "base_mix": 1.0,
@@ -653,12 +656,13 @@ PRESETS: dict[str, dict[str, Any]] = {
     },
     # every solve to its tolerance (README "Solving to tolerance"): the shading by multigrid
     # PCG to a relative residual of 1e-4 (Jacobi takes over where the multigrid stagnates),
-    # Split-Bregman until z changes by less than 5e-5 per iteration (on MIT's panther: Eq. 12's
-    # objective within 1% of its minimum). theta is only the splitting penalty (the minimiser
+    # Split-Bregman until its duality gap is below 0.5% (stop 28, below; before, until z changed
+    # by less than 5e-5 per iteration). theta is only the splitting penalty (the minimiser
     # does not depend on it): 2.5 gets there in ~80 iterations where the paper's 40 needs ~350.
     # Each alternation's Split-Bregman starts from the previous one's Bregman variable (same
     # minimiser, 10-45% fewer iterations in alternations 2-5). The caps are safety caps (a
-    # ConvergenceWarning if hit). 13-30 s per 512 px photo on 2 CPU cores (stop 25).
+    # ConvergenceWarning if hit). 7.8-23.7 s per 512 px photo on 2 CPU cores (stop 33, six
+    # skimage photos, tools/bregman_iterations.py).
     # Re-tuned for converged solves (MIT, README "Solving to tolerance"): tau 1.1 (each
     # alternation reaches its minimum, so the weight drift compounds; 0.0234 -> 0.0229, 7 of 10
     # objects better) and the L1 weights gamma halved (a minimiser flattens fully where early
