@@ -19,6 +19,7 @@ from torchiid.baselines.retinex import ColorRetinex, color_retinex
 from torchiid.core.exceptions import (
     ConvergenceWarning,
     ImageError,
+    MemoryLimitError,
     ModelError,
     ParameterError,
     ShapeError,
@@ -54,6 +55,7 @@ __all__ = [
     "ImageError",
     "IntrinsicDecomposer",
     "IterationLayers",
+    "MemoryLimitError",
     "MidLevelFeatures",
     "ModelError",
     "PCGResult",

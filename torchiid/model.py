@@ -19,6 +19,7 @@ on the longer side); the shading is brought back to the input's resolution edge-
 
 from __future__ import annotations
 
+import os
 import time
 import warnings
 from collections.abc import Callable
@@ -28,7 +29,13 @@ import torch
 from torch import nn
 
 from torchiid.core.check import as_mask, check_image
-from torchiid.core.exceptions import ConvergenceWarning, ParameterError, ShapeError
+from torchiid.core.exceptions import (
+    ConvergenceWarning,
+    MemoryLimitError,
+    ParameterError,
+    ShapeError,
+)
+from torchiid.core.memory import available_memory
 from torchiid.core.stats import image_quantile, subgrid
 from torchiid.features.semantic import SemanticFeatures, semantic_features
 from torchiid.params import Parameters
@@ -46,7 +53,23 @@ __all__ = [
     "decompose",
     "full_resolution_layers",
     "IntrinsicDecomposer",
+    "memory_needed",
 ]
+
+#: Peak memory the method takes per pixel of the working resolution, on the CPU: the growth
+#: of a ``torchiid decompose --max-side 0`` process's peak RSS above its own footprint (a
+#: 128x96 photo), fitted on photos of 0.5 to 2 MP (``python tools/bench_memory.py``, stop
+#: 33): about 1.29 KB per pixel in all with the ``default`` solvers (0.79, 1.59 and 2.73 GB
+#: at 0.5, 1 and 2 MP), 2.04 KB when the Split-Bregman state is stored between updates, as
+#: in the ``converged`` preset (1.02 and 2.03 GB at 0.5 and 1 MP: its 60-plane state per
+#: channel and the multigrid hierarchy). Less the per-pixel cost of the full resolution below.
+BYTES_PER_WORKING_PIXEL = {"replayed": 1240, "stored": 1990}
+#: and per pixel of the input, beyond it: the photo, the layers and their bands
+BYTES_PER_FULL_PIXEL = 50
+#: and once per call: the features' and the solvers' own buffers
+MEMORY_OVERHEAD = 150_000_000
+#: the environment variable that switches the check off (``TORCHIID_MEMORY_CHECK=0``)
+MEMORY_CHECK_VARIABLE = "TORCHIID_MEMORY_CHECK"
 
 
 @dataclass(frozen=True)
@@ -308,6 +331,50 @@ def _temporal_prior(
     return prior.replace(target=target.contiguous(), confidence=conf.contiguous())
 
 
+def memory_needed(height: int, width: int, params: Parameters | None = None, batch: int = 1) -> int:
+    """Bytes a decomposition of ``batch`` images of ``height × width`` takes beyond what is loaded.
+
+    An estimate of the peak growth on the CPU (:data:`BYTES_PER_WORKING_PIXEL` per pixel of
+    the working resolution ``params.max_side``, :data:`BYTES_PER_FULL_PIXEL` per pixel of
+    the input and :data:`MEMORY_OVERHEAD`), fitted on photos to within 15% (README "Photos of
+    any size"); the libraries and the feature extractor, loaded once per process (about 0.5
+    GB), are not in it.
+    """
+    params = params if params is not None else Parameters.preset("default")
+    h, w = working_size(height, width, params.max_side)
+    from torchiid.priors.reflectance_terms import REPLAY_STEPS
+
+    stored = params.bregman_warm_state or params.bregman_iter > REPLAY_STEPS + 1
+    per_pixel = BYTES_PER_WORKING_PIXEL["stored" if stored else "replayed"]
+    return MEMORY_OVERHEAD + batch * (per_pixel * h * w + BYTES_PER_FULL_PIXEL * height * width)
+
+
+def _check_memory(batch: int, height: int, width: int, params: Parameters) -> None:
+    """Refuse, before any work, a CPU decomposition that cannot fit in the memory left."""
+    if os.environ.get(MEMORY_CHECK_VARIABLE, "1").strip().lower() in ("0", "off", "false", "no"):
+        return
+    need = memory_needed(height, width, params, batch)
+    have = available_memory()
+    if have is None or need <= have:
+        return
+    h, w = working_size(height, width, params.max_side)
+    where = "at full resolution" if (h, w) == (height, width) else f"at {w}x{h} px"
+    many = f"{batch} images of " if batch > 1 else ""
+    hint = ""
+    default_side = Parameters().max_side
+    if max(h, w) > default_side:
+        fit = memory_needed(height, width, params.replace(max_side=default_side), batch)
+        hint = (
+            f"at {default_side} px, the default working resolution (max_side; CLI --max-side), "
+            f"it needs about {fit / 1e9:.1f} GB; "
+        )
+    raise MemoryLimitError(
+        f"decomposing {many}{width}x{height} px {where} needs about {need / 1e9:.1f} GB of "
+        f"memory and {have / 1e9:.1f} GB is available; {hint}"
+        f"{MEMORY_CHECK_VARIABLE}=0 skips this check"
+    )
+
+
 @torch.no_grad()
 def decompose(
     image: torch.Tensor,
@@ -409,6 +476,8 @@ def decompose(
     if in_dtype in (torch.float16, torch.bfloat16):
         image = image.float()
     big_h, big_w = image.shape[-2:]
+    if image.device.type == "cpu":
+        _check_memory(image.shape[0], big_h, big_w, params)
     h, w = working_size(big_h, big_w, params.max_side)
     img = downsample(image, (h, w))
     msk = None

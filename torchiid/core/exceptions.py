@@ -14,6 +14,7 @@ __all__ = [
     "ShapeError",
     "ParameterError",
     "ModelError",
+    "MemoryLimitError",
     "ConvergenceWarning",
     "one_line",
     "describe_error",
@@ -38,6 +39,14 @@ class ParameterError(TorchiidError):
 
 class ModelError(TorchiidError):
     """A backbone model (weights or exported ONNX file) is missing or corrupt."""
+
+
+class MemoryLimitError(TorchiidError):
+    """A decomposition would need more memory than the machine (or its container) has left.
+
+    Raised before the work starts, so nothing is half done; the message says how much would be
+    needed, how much is available and how to need less.
+    """
 
 
 class ConvergenceWarning(UserWarning):
