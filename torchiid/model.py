@@ -39,6 +39,7 @@ from torchiid.core.memory import available_memory
 from torchiid.core.stats import image_quantile, subgrid
 from torchiid.features.semantic import SemanticFeatures, semantic_features
 from torchiid.params import Parameters
+from torchiid.priors.reflectance_terms import REPLAY_STEPS
 from torchiid.priors.shading_terms import pixel_confidence
 from torchiid.resample import GuidedUpsampler, downsample, row_bands, working_size
 from torchiid.stages.config import TemporalPrior
@@ -336,14 +337,12 @@ def memory_needed(height: int, width: int, params: Parameters | None = None, bat
 
     An estimate of the peak growth on the CPU (:data:`BYTES_PER_WORKING_PIXEL` per pixel of
     the working resolution ``params.max_side``, :data:`BYTES_PER_FULL_PIXEL` per pixel of
-    the input and :data:`MEMORY_OVERHEAD`), fitted on photos to within 15% (README "Photos of
-    any size"); the libraries and the feature extractor, loaded once per process (about 0.5
-    GB), are not in it.
+    the input and :data:`MEMORY_OVERHEAD`), fitted on photos to within 15% (README "Errors
+    and exit statuses", "Memory"); the libraries and the feature extractor, loaded once per
+    process (about 0.5 GB), are not in it.
     """
     params = params if params is not None else Parameters.preset("default")
     h, w = working_size(height, width, params.max_side)
-    from torchiid.priors.reflectance_terms import REPLAY_STEPS
-
     stored = params.bregman_warm_state or params.bregman_iter > REPLAY_STEPS + 1
     per_pixel = BYTES_PER_WORKING_PIXEL["stored" if stored else "replayed"]
     return MEMORY_OVERHEAD + batch * (per_pixel * h * w + BYTES_PER_FULL_PIXEL * height * width)
