@@ -60,14 +60,18 @@ def main() -> None:
         cv2.imwrite(str(tiny), mosaic(128, 96)[..., ::-1])
         for preset in args.presets:
             params = Parameters.preset(preset).replace(max_side=args.max_side)
-            base, _ = _peak_rss(tiny, d / "out", preset, args.max_side)
+            base, status = _peak_rss(tiny, d / f"out-{preset}-base", preset, args.max_side)
+            if status != 0:
+                print(f"{preset:<10} the run on a 128x96 photo failed (exit status {status})")
+                continue
             for mp in args.sizes:
                 w, h = SIZES[mp]
                 photo = d / f"p{mp:g}.jpg"
                 if not photo.exists():
                     rgb = mosaic(w, h)
                     cv2.imwrite(str(photo), rgb[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 92])
-                peak, status = _peak_rss(photo, d / "out", preset, args.max_side)
+                out = d / f"out-{preset}-{mp:g}"  # a fresh folder: no manifest to skip by
+                peak, status = _peak_rss(photo, out, preset, args.max_side)
                 est = memory_needed(h, w, params)
                 growth = peak - base
                 note = "" if status == 0 else f"  (exit status {status})"

@@ -332,28 +332,52 @@ def _temporal_prior(
     return prior.replace(target=target.contiguous(), confidence=conf.contiguous())
 
 
-def memory_needed(height: int, width: int, params: Parameters | None = None, batch: int = 1) -> int:
+def memory_needed(
+    height: int,
+    width: int,
+    params: Parameters | None = None,
+    batch: int = 1,
+    *,
+    return_stage1: bool = False,
+    return_iterations: bool = False,
+) -> int:
     """Bytes a decomposition of ``batch`` images of ``height × width`` takes beyond what is loaded.
 
-    An estimate of the peak growth on the CPU (:data:`BYTES_PER_WORKING_PIXEL` per pixel of
+    An estimate of the peak growth on the CPU: :data:`BYTES_PER_WORKING_PIXEL` per pixel of
     the working resolution ``params.max_side``, :data:`BYTES_PER_FULL_PIXEL` per pixel of
-    the input and :data:`MEMORY_OVERHEAD`), fitted on photos to within 15% (README "Errors
-    and exit statuses", "Memory"); the libraries and the feature extractor, loaded once per
+    the input and :data:`MEMORY_OVERHEAD`, fitted on photos (README "Errors and exit
+    statuses", "Memory": within 2% at full resolution with the ``default`` solvers, once
+    10% under, up to
+    16% over with ``converged``, up to 45% over at the default working resolution); with
+    ``return_stage1`` (:func:`decompose`'s default) 16 bytes more per input pixel (``σ, ρ``
+    at full resolution), with ``return_iterations`` 32 bytes per working pixel and
+    alternation (``σ, ρ, R, S``). The libraries and the feature extractor, loaded once per
     process (about 0.5 GB), are not in it.
     """
     params = params if params is not None else Parameters.preset("default")
     h, w = working_size(height, width, params.max_side)
     stored = params.bregman_warm_state or params.bregman_iter > REPLAY_STEPS + 1
-    per_pixel = BYTES_PER_WORKING_PIXEL["stored" if stored else "replayed"]
-    return MEMORY_OVERHEAD + batch * (per_pixel * h * w + BYTES_PER_FULL_PIXEL * height * width)
+    per_working = BYTES_PER_WORKING_PIXEL["stored" if stored else "replayed"]
+    if return_iterations:
+        per_working += 32 * params.iterations
+    per_full = BYTES_PER_FULL_PIXEL + (16 if return_stage1 else 0)
+    return MEMORY_OVERHEAD + batch * (per_working * h * w + per_full * height * width)
 
 
-def _check_memory(batch: int, height: int, width: int, params: Parameters) -> None:
+def _gb(n: float) -> str:
+    """Bytes as GB with two significant decimals below 10 GB (``0.25 GB``, ``31.2 GB``)."""
+    return f"{n / 1e9:.2f} GB" if n < 10e9 else f"{n / 1e9:.1f} GB"
+
+
+def _check_memory(batch: int, height: int, width: int, params: Parameters, **flags: bool) -> None:
     """Refuse, before any work, a CPU decomposition that cannot fit in the memory left."""
     if os.environ.get(MEMORY_CHECK_VARIABLE, "1").strip().lower() in ("0", "off", "false", "no"):
         return
-    need = memory_needed(height, width, params, batch)
-    have = available_memory()
+    need = memory_needed(height, width, params, batch, **flags)
+    try:
+        have = available_memory()
+    except Exception:  # noqa: BLE001 - the check must never be what breaks a decomposition
+        have = None
     if have is None or need <= have:
         return
     h, w = working_size(height, width, params.max_side)
@@ -362,15 +386,16 @@ def _check_memory(batch: int, height: int, width: int, params: Parameters) -> No
     hint = ""
     default_side = Parameters().max_side
     if max(h, w) > default_side:
-        fit = memory_needed(height, width, params.replace(max_side=default_side), batch)
-        hint = (
-            f"at {default_side} px, the default working resolution (max_side; CLI --max-side), "
-            f"it needs about {fit / 1e9:.1f} GB; "
-        )
+        at_default = params.replace(max_side=default_side)
+        fit = memory_needed(height, width, at_default, batch, **flags)
+        what = "the default working resolution (max_side; CLI --max-side)"
+        if fit <= have:
+            hint = f"at {default_side} px, {what}, it needs about {_gb(fit)}; "
+        else:
+            hint = f"even at {default_side} px, {what}, it needs about {_gb(fit)}; "
     raise MemoryLimitError(
-        f"decomposing {many}{width}x{height} px {where} needs about {need / 1e9:.1f} GB of "
-        f"memory and {have / 1e9:.1f} GB is available; {hint}"
-        f"{MEMORY_CHECK_VARIABLE}=0 skips this check"
+        f"decomposing {many}{width}x{height} px {where} needs about {_gb(need)} of memory "
+        f"and {_gb(have)} is available; {hint}{MEMORY_CHECK_VARIABLE}=0 skips this check"
     )
 
 
@@ -476,7 +501,8 @@ def decompose(
         image = image.float()
     big_h, big_w = image.shape[-2:]
     if image.device.type == "cpu":
-        _check_memory(image.shape[0], big_h, big_w, params)
+        flags = {"return_stage1": return_stage1, "return_iterations": return_iterations}
+        _check_memory(image.shape[0], big_h, big_w, params, **flags)
     h, w = working_size(big_h, big_w, params.max_side)
     img = downsample(image, (h, w))
     msk = None

@@ -81,9 +81,50 @@ def test_nothing_readable_means_unknown(tmp_path):
     assert available_memory(tmp_path / "no", tmp_path / "no", tmp_path / "no") is None
 
 
-def test_this_machine_reports_some_memory():
-    got = available_memory()
-    assert got is None or got > 0
+def test_cgroup_v1_prefers_the_subtree_cache_listed_after_the_groups_own(tmp_path):
+    # the kernel lists inactive_file (the group's own pages) before total_inactive_file (the
+    # subtree's, which its usage covers): the subtree's counts
+    cg = tmp_path / "cgroup"
+    cg.write_text("4:memory:/job\n")
+    root = tmp_path / "sys"
+    stat = "cache 1\ninactive_file 0\ntotal_cache 2\ntotal_inactive_file 2147483648\n"
+    _cgroup_files(
+        root,
+        ["memory", "job"],
+        {
+            "memory.limit_in_bytes": str(4 * GB),
+            "memory.usage_in_bytes": str(3 * GB),
+            "memory.stat": stat,
+        },
+    )
+    assert available_memory(_meminfo(tmp_path, 16 * 1024 * 1024), cg, root) == 3 * GB
+
+
+def test_cgroup_v2_soft_limit_and_an_unlimited_leaf_under_a_limited_parent(tmp_path):
+    cg = tmp_path / "cgroup"
+    cg.write_text("0::/slice/leaf\n")
+    root = tmp_path / "sys"
+    _cgroup_files(root, ["slice", "leaf"], {"memory.max": "max\n", "memory.current": "5\n"})
+    _cgroup_files(
+        root,
+        ["slice"],
+        {"memory.max": str(8 * GB), "memory.high": str(6 * GB), "memory.current": str(GB)},
+    )
+    # the parent's memory.high (6 GB), the lower of its two limits, less its 1 GB
+    assert available_memory(_meminfo(tmp_path, 16 * 1024 * 1024), cg, root) == 5 * GB
+
+
+def test_unreadable_or_garbled_files_are_skipped_not_raised(tmp_path):
+    cg = tmp_path / "cgroup"
+    cg.write_bytes("0::/caf\u00e9.scope\n".encode())
+    root = tmp_path / "sys"
+    _cgroup_files(root, ["caf\ufffd.scope"], {"memory.current": "1"})
+    (root / "memory.max").write_bytes(b"\xff\xfe not a number\n")
+    meminfo = tmp_path / "meminfo"
+    meminfo.write_bytes(b"MemAvailable: \xff kB\nMemFree: 7 kB\n")
+    assert available_memory(meminfo, cg, root) is None
+    # a good MemAvailable still counts beside a garbled cgroup
+    assert available_memory(_meminfo(tmp_path, 1024), cg, root) == 1024 * 1024
 
 
 def test_the_estimate_grows_with_the_working_resolution_and_the_stored_state():
@@ -121,10 +162,35 @@ def test_decompose_refuses_before_any_work_what_cannot_fit(monkeypatch):
 def test_the_message_names_the_default_working_resolution_when_it_would_fit(monkeypatch):
     img = mondrian(600, 800).image
     full = Parameters().replace(iterations=1, max_side=0)
-    monkeypatch.setattr(model, "available_memory", lambda: memory_needed(600, 800) + 1)
+    flags = {"return_stage1": True}  # decompose's default
+    at_default = memory_needed(600, 800, **flags)
+    monkeypatch.setattr(model, "available_memory", lambda: at_default + 1)
     with pytest.raises(MemoryLimitError) as err:
         decompose(img, full)
-    assert "at 512 px, the default working resolution" in str(err.value)
+    assert "; at 512 px, the default working resolution" in str(err.value)
+    # where even that would not fit, the message says so
+    monkeypatch.setattr(model, "available_memory", lambda: at_default - 1)
+    with pytest.raises(MemoryLimitError) as err:
+        decompose(img, full)
+    assert "even at 512 px" in str(err.value)
+
+
+def test_the_estimate_counts_what_the_caller_asks_to_keep():
+    p = Parameters().replace(max_side=0)
+    plain = memory_needed(600, 800, p)
+    assert memory_needed(600, 800, p, return_stage1=True) == plain + 16 * 600 * 800
+    with_layers = memory_needed(600, 800, p, return_iterations=True)
+    assert with_layers == plain + 32 * p.iterations * 600 * 800
+
+
+def test_a_failing_memory_probe_never_stops_a_decomposition(monkeypatch):
+    def broken():
+        raise RuntimeError("no /proc here")
+
+    monkeypatch.setattr(model, "available_memory", broken)
+    p = Parameters().replace(iterations=1, use_sc=False, use_sm=False, use_rm=False)
+    out = decompose(mondrian(64, 64).image, p)
+    assert out.reflectance.shape == (1, 3, 64, 64)
 
 
 def test_the_check_can_be_switched_off_and_does_not_touch_what_fits(monkeypatch):
@@ -159,3 +225,8 @@ def test_cli_fails_only_the_photo_that_cannot_fit(tmp_path, monkeypatch, capsys)
     assert "Traceback" not in err
     assert (out / "small-reflectance.png").exists()
     assert not list(out.glob("big-*"))
+    # not a bad input: with memory to spare (or the check off) a rerun decomposes it
+    monkeypatch.setattr(model, "available_memory", lambda: None)
+    status = main([*argv, "--iterations", "1", "--no-progress"])
+    assert status == 0
+    assert (out / "big-reflectance.png").exists()

@@ -42,6 +42,7 @@ from torchiid.baselines.retinex import retinex_decomposition
 from torchiid.core.exceptions import (
     ConvergenceWarning,
     ImageError,
+    MemoryLimitError,
     ModelError,
     TorchiidError,
     caused_by_interrupt,
@@ -463,7 +464,9 @@ def process_image(
         ``"input"`` (the file, or its own mask, cannot be used: a :class:`TorchiidError`),
         ``"output"`` (an output exists or cannot be written:
         :class:`~torchiid.io.layers.OutputError`) or ``"error"`` (anything unexpected, a
-        :class:`~torchiid.core.exceptions.ModelError`, or a process that cannot be set up).
+        :class:`~torchiid.core.exceptions.ModelError`, a
+        :class:`~torchiid.core.exceptions.MemoryLimitError` or a process that cannot be set
+        up).
 
     Raises:
         KeyboardInterrupt: interrupted; nothing of the image was put in place.
@@ -576,6 +579,10 @@ def process_image(
                 pass
         if isinstance(exc, OutputError):
             result.failure = "output"
+        elif isinstance(exc, MemoryLimitError):
+            # the machine's memory at this moment, not the file: a rerun (or Dask, on a worker
+            # that may have more) tries it again
+            result.failure = "error"
         elif isinstance(exc, TorchiidError) and not isinstance(exc, ModelError):
             result.failure = "input"
         else:

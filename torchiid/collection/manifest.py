@@ -14,8 +14,9 @@ of a key is the one that counts. Fields:
 ``status``      ``"done"`` or ``"failed"``
 ``message``     the one-line error of a failed image (``null`` when done)
 ``failure``     what failed: ``"input"`` (the file cannot be used), ``"output"`` (an output
-                exists or cannot be written), ``"error"`` (unexpected) or ``"worker"`` (the
-                worker process died on it every time); ``null`` when done
+                exists or cannot be written), ``"error"`` (unexpected, or more memory needed
+                than was available: ``MemoryLimitError``) or ``"worker"`` (the worker
+                process died on it every time); ``null`` when done
 ``files``       the output files, relative to ``OUT`` (``[]`` when failed)
 ``seconds``     time spent on the image
 ``attempts``    1, or more when a worker died while processing it and it was tried again

@@ -51,32 +51,40 @@ def available_memory(
     """Bytes of memory this process can still take before the system or its container runs out.
 
     The smaller of the kernel's ``MemAvailable`` (free memory plus the page cache it can
-    reclaim) and, where the process's memory cgroup (v2 or v1: a container's limit) has a
-    limit, that limit less the cgroup's usage without its reclaimable file cache (the
-    ``inactive_file`` of its ``memory.stat``). ``None`` where neither can be read (not
-    Linux); the arguments are for tests.
+    reclaim) and, where the process's memory cgroup or one of its ancestors (v2 or v1: a
+    container's limit) has a limit, that limit less the group's usage without its
+    reclaimable file cache (``inactive_file`` in its ``memory.stat``; in v2 the lower of
+    ``memory.high`` and ``memory.max``). ``None`` where neither can be read (not Linux).
+    Never raises: files it cannot read or parse are skipped. The arguments are for tests.
+
+    Several processes on one machine (``--workers``, a Dask worker per core) each see the
+    same figure: it says what is left now, not what the others will take.
     """
     known = []
-    try:
-        with open(meminfo, encoding="ascii") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    known.append(int(line.split()[1]) * 1024)
-                    break
-    except (OSError, ValueError, IndexError):
-        pass
+    info = _key_values(meminfo, ":")
+    if "MemAvailable" in info:
+        known.append(info["MemAvailable"] * 1024)  # in kB
     left = _cgroup_left(cgroup, cgroup_root)
     if left is not None:
         known.append(left)
     return min(known) if known else None
 
 
-def _read_int(path: str | os.PathLike) -> int | None:
+def _read_text(path: str | os.PathLike) -> str | None:
+    """The file's text, or ``None`` if it cannot be read (undecodable bytes are replaced)."""
     try:
-        with open(path, encoding="ascii") as fh:
-            text = fh.read().strip()
-    except OSError:
+        with open(path, encoding="ascii", errors="replace") as fh:
+            return fh.read()
+    except (OSError, ValueError):
         return None
+
+
+def _read_int(path: str | os.PathLike) -> int | None:
+    """A cgroup limit or usage file: an integer, ``max`` (no limit), else ``None``."""
+    text = _read_text(path)
+    if text is None:
+        return None
+    text = text.strip()
     if text == "max":
         return _NO_LIMIT
     try:
@@ -85,16 +93,29 @@ def _read_int(path: str | os.PathLike) -> int | None:
         return None
 
 
-def _stat_value(path: str | os.PathLike, keys: tuple[str, ...]) -> int:
-    try:
-        with open(path, encoding="ascii") as fh:
-            for line in fh:
-                name, _, value = line.partition(" ")
-                if name in keys:
-                    return int(value)
-    except (OSError, ValueError):
-        pass
-    return 0
+def _key_values(path: str | os.PathLike, separator: str = " ") -> dict[str, int]:
+    """``name value`` lines (``memory.stat``; ``/proc/meminfo`` with ``:``) as a dict."""
+    out: dict[str, int] = {}
+    for line in (_read_text(path) or "").splitlines():
+        name, _, rest = line.partition(separator)
+        fields = rest.split()
+        if fields:
+            try:
+                out.setdefault(name.strip(), int(fields[0]))
+            except ValueError:
+                continue
+    return out
+
+
+#: per cgroup version: the limit files (the lowest counts), the usage file, and the
+#: ``memory.stat`` keys of the reclaimable file cache in order of preference (v1's
+#: ``total_inactive_file`` covers the group's children, as its usage does)
+_V2 = (("memory.max", "memory.high"), "memory.current", ("inactive_file",))
+_V1 = (
+    ("memory.limit_in_bytes",),
+    "memory.usage_in_bytes",
+    ("total_inactive_file", "inactive_file"),
+)
 
 
 def _cgroup_left(cgroup: str | os.PathLike, root: str | os.PathLike) -> int | None:
@@ -103,35 +124,32 @@ def _cgroup_left(cgroup: str | os.PathLike, root: str | os.PathLike) -> int | No
     Per limited group: its limit less its usage without the file cache it can reclaim.
     ``None`` where no group on the way up has a limit (or none can be read).
     """
-    try:
-        with open(cgroup, encoding="ascii") as fh:
-            lines = fh.read().splitlines()
-    except OSError:
+    text = _read_text(cgroup)
+    if text is None:
         return None
     lefts = []
-    for line in lines:
+    for line in text.splitlines():
         parts = line.split(":", 2)
         if len(parts) != 3:
             continue
         _, controllers, rel = parts
         if controllers == "":  # cgroup v2 (unified)
-            base, names = str(root), ("memory.max", "memory.current", "memory.stat")
-            keys: tuple[str, ...] = ("inactive_file",)
+            base, (limit_files, usage_file, keys) = str(root), _V2
         elif "memory" in controllers.split(","):  # cgroup v1
-            base = os.path.join(root, "memory")
-            names = ("memory.limit_in_bytes", "memory.usage_in_bytes", "memory.stat")
-            keys = ("total_inactive_file", "inactive_file")
+            base, (limit_files, usage_file, keys) = os.path.join(root, "memory"), _V1
         else:
             continue
-        parts_rel = [p for p in rel.split("/") if p]
+        parts_rel = [p for p in rel.split("/") if p and p not in (".", "..")]
         # the group itself, then each ancestor up to the root of the hierarchy (a container
         # may see only part of the path: the files that cannot be read are skipped)
         for depth in range(len(parts_rel), -1, -1):
             where = os.path.join(base, *parts_rel[:depth])
-            limit = _read_int(os.path.join(where, names[0]))
+            limits = [_read_int(os.path.join(where, name)) for name in limit_files]
+            limit = min((v for v in limits if v is not None), default=None)
             if limit is None or limit >= _NO_LIMIT:
                 continue
-            usage = _read_int(os.path.join(where, names[1])) or 0
-            cache = _stat_value(os.path.join(where, names[2]), keys)
+            usage = _read_int(os.path.join(where, usage_file)) or 0
+            stat = _key_values(os.path.join(where, "memory.stat"))
+            cache = next((stat[k] for k in keys if k in stat), 0)
             lefts.append(max(limit - max(usage - cache, 0), 0))
     return min(lefts) if lefts else None
