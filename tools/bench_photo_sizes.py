@@ -74,7 +74,11 @@ def main() -> None:
             w, h = SIZES[mp]
             photo = Path(tmp) / f"photo-{w}x{h}.jpg"
             cv2.imwrite(str(photo), mosaic(w, h)[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 92])
-            runs = [run_once(photo, Path(tmp) / "out", args.extra) for _ in range(args.repeats)]
+            # a fresh output folder per run: in a used one the manifest makes a rerun skip it
+            runs = [
+                run_once(photo, Path(tmp) / f"out-{w}x{h}-{i}", args.extra)
+                for i in range(args.repeats)
+            ]
             wall = statistics.median(r[0] for r in runs)
             rss = max(r[1] for r in runs)
             method = statistics.median(r[2] for r in runs)

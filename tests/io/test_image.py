@@ -128,3 +128,26 @@ def test_load_mask(tmp_path):
     _write(tmp_path / "empty.png", np.zeros((64, 64), np.uint8))
     with pytest.raises(ImageError, match="mask is empty"):
         load_mask(tmp_path / "empty.png")
+
+
+def test_encoded_codes_are_the_files_save_codes_writes(tmp_path):
+    from torchiid.io.image import encode_codes, save_codes, save_encoded
+
+    rng = np.random.default_rng(3)
+    arrays = {
+        "rgb8": rng.integers(0, 256, (37, 53, 3), dtype=np.uint8),
+        "rgb16": rng.integers(0, 65536, (37, 53, 3), dtype=np.uint16),
+        "gray8": rng.integers(0, 256, (37, 53), dtype=np.uint8),
+    }
+    for name, arr in arrays.items():
+        a, b = tmp_path / f"{name}-a.png", tmp_path / f"{name}-b.png"
+        save_codes(a, arr)
+        save_encoded(b, encode_codes(arr))
+        assert a.read_bytes() == b.read_bytes()
+        back = cv2.imread(str(b), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(back[..., ::-1] if arr.ndim == 3 else back, arr)
+    with pytest.raises(ImageError, match="uint8 or uint16"):
+        encode_codes(np.zeros((4, 4, 3), np.float32))
+    with pytest.raises(ImageError, match="3 colour channels"):
+        encode_codes(np.zeros((4, 4, 4), np.uint8))
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left

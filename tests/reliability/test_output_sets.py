@@ -123,14 +123,14 @@ def test_a_write_error_fails_one_image_and_the_batch_goes_on(tmp_path, monkeypat
         _photo(tmp_path / f"{name}.png")
     import torchiid.io.layers as layers
 
-    real = layers.save_codes
+    real = layers.save_encoded
 
-    def disk_full_for_b(path, codes):
+    def disk_full_for_b(path, encoded):
         if path.name == "b-preview.png":
             raise OSError(errno.ENOSPC, "No space left on device", str(path))
-        return real(path, codes)
+        return real(path, encoded)
 
-    monkeypatch.setattr(layers, "save_codes", disk_full_for_b)
+    monkeypatch.setattr(layers, "save_encoded", disk_full_for_b)
     out = tmp_path / "out"
     argv = ["decompose", *(str(tmp_path / f"{n}.png") for n in "abc"), "-o", str(out), *FAST]
     assert main(argv) == 1

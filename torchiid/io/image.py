@@ -30,12 +30,12 @@ Reading (:func:`load_image`, :func:`load_mask`, :func:`read_exr`):
   the file and the problem: missing, unreadable, empty, not an image, truncated or corrupt,
   zero size, smaller than ``min_side`` pixels, or containing NaN / infinity.
 
-Writing (:func:`save_image`, :func:`save_uint8`, :func:`save_codes`) is atomic: the data go
-to a temporary file in the target folder, which is renamed over the target only when complete,
-so an output is never half-written. The file gets the permissions of a normally created file
-(``0o666`` less the process umask). Encodings: 8-bit sRGB, 16-bit sRGB and 16-bit linear (PNG
-or TIFF, through OpenCV), float32 ``.npy``, and float32 OpenEXR (ZIP compression, channel
-``Y`` or ``R``, ``G``, ``B``, optional extra header attributes).
+Writing (:func:`save_image`, :func:`save_uint8`, :func:`save_codes`, :func:`save_encoded`) is
+atomic: the data go to a temporary file in the target folder, which is renamed over the target
+only when complete, so an output is never half-written. The file gets the permissions of a
+normally created file (``0o666`` less the process umask). Encodings: 8-bit sRGB, 16-bit sRGB
+and 16-bit linear (PNG or TIFF, through OpenCV), float32 ``.npy``, and float32 OpenEXR (ZIP
+compression, channel ``Y`` or ``R``, ``G``, ``B``, optional extra header attributes).
 """
 
 from __future__ import annotations
@@ -73,6 +73,8 @@ __all__ = [
     "save_image",
     "save_uint8",
     "save_codes",
+    "encode_codes",
+    "save_encoded",
     "srgb_to_linear",
     "linear_to_srgb",
 ]
@@ -859,6 +861,39 @@ def save_codes(path: str | os.PathLike, rgb: np.ndarray) -> Path:
     payload = np.ascontiguousarray(rgb[..., ::-1]) if rgb.ndim == 3 else rgb
     path = Path(path)
     _atomic_write(path, payload)
+    return path
+
+
+def encode_codes(rgb: np.ndarray, suffix: str = ".png") -> np.ndarray:
+    """The encoded file of an ``(H, W, 3)`` RGB or ``(H, W)`` gray uint8 / uint16 array.
+
+    As :func:`save_codes` encodes it (OpenCV, by ``suffix``), as a byte buffer for
+    :func:`save_encoded`: the encoding releases the GIL, so several files can be encoded at
+    once in threads while their writing stays in order.
+    """
+    rgb = np.asarray(rgb)
+    if rgb.dtype not in (np.uint8, np.uint16) or rgb.ndim not in (2, 3):
+        raise ImageError(
+            f"encode_codes takes an (H, W[, 3]) uint8 or uint16 array, got {rgb.dtype} {rgb.shape}"
+        )
+    if rgb.ndim == 3 and rgb.shape[2] != 3:
+        raise ImageError(f"encode_codes takes 3 colour channels, got {rgb.shape[2]}")
+    payload = np.ascontiguousarray(rgb[..., ::-1]) if rgb.ndim == 3 else rgb
+    ok, buf = cv2.imencode(suffix, payload)
+    if not ok:
+        raise ImageError(f"OpenCV cannot encode a {suffix} file")
+    return buf
+
+
+def save_encoded(path: str | os.PathLike, encoded: np.ndarray | bytes) -> Path:
+    """Write an encoded file (:func:`encode_codes`) atomically as is."""
+    path = Path(path)
+
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as fh:
+            fh.write(memoryview(encoded))
+
+    _write_atomically(path, write)
     return path
 
 

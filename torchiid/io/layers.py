@@ -66,6 +66,7 @@ import signal
 import tempfile
 import threading
 from collections.abc import Callable, Iterator, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -75,7 +76,7 @@ import torch.nn.functional as F
 
 from torchiid.core.colour import srgb8_encode_lut
 from torchiid.core.exceptions import TorchiidError
-from torchiid.io.image import save_codes, save_image
+from torchiid.io.image import encode_codes, save_encoded, save_image
 from torchiid.resample import row_bands
 
 __all__ = [
@@ -474,25 +475,42 @@ def write_layers(
         files[key] = output_set.write(f"{stem}-{key}", write)
 
     exr_header = {"shading_white": white, "convention": "torchiid albedo [0,1]"}
-    put("reflectance-linear16.png", lambda p: save_codes(p, r16))
-    put("shading.exr", lambda p: save_image(p, s_exr, "exr", metadata=exr_header))
     r8 = srgb8_encode_lut()[r16]
-    r16 = None  # the 8-bit arrays replace it
-    put("reflectance.png", lambda p: save_codes(p, r8))
-    put("shading.png", lambda p: save_codes(p, s8))
     panels = [
         _preview_panel(x.detach().to("cpu", torch.float32)).expand(3, -1, -1)
         for x in (image, reflectance, shading / white)
     ]
     sep = torch.ones(3, panels[0].shape[1], 4)
     prev = torch.cat([panels[0], sep, panels[1], sep, panels[2]], dim=2)
-    put("preview.png", lambda p: save_codes(p, srgb8_from_linear(prev)))
-    if save_npy:
-        put("reflectance.npy", lambda p: save_image(p, reflectance, "npy"))
-        put("shading.npy", lambda p: save_image(p, shading, "npy"))
+    pngs = {
+        "reflectance-linear16.png": r16,
+        "reflectance.png": r8,
+        "shading.png": s8,
+        "preview.png": srgb8_from_linear(prev),
+    }
     if confidence is not None:
         conf = (confidence.detach().to("cpu", torch.float32)[0] * 255).round_().to(torch.uint8)
-        put("confidence.png", lambda p: save_codes(p, conf.numpy()))
+        pngs["confidence.png"] = conf.numpy()
+    # the PNGs are encoded in two threads (OpenCV releases the GIL; the 16-bit reflectance of a
+    # 12 MP photo takes about a second, the others together half that), and the files are
+    # written in their usual order as their encodings arrive. Leaving the block waits for the
+    # encoders, also on an interrupt.
+    with ThreadPoolExecutor(2, thread_name_prefix="torchiid-png") as pool:
+        encoded = {key: pool.submit(encode_codes, arr) for key, arr in pngs.items()}
+        del pngs, r16, r8
+
+        def png(key: str) -> None:
+            put(key, lambda p: save_encoded(p, encoded.pop(key).result()))
+
+        png("reflectance-linear16.png")
+        put("shading.exr", lambda p: save_image(p, s_exr, "exr", metadata=exr_header))
+        for key in ("reflectance.png", "shading.png", "preview.png"):
+            png(key)
+        if save_npy:
+            put("reflectance.npy", lambda p: save_image(p, reflectance, "npy"))
+            put("shading.npy", lambda p: save_image(p, shading, "npy"))
+        if "confidence.png" in encoded:
+            png("confidence.png")
     record = {
         "size": [big_w, big_h],
         "shading_white": white,
