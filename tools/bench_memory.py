@@ -25,13 +25,14 @@ import cv2
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from bench_photo_sizes import SIZES as PHOTO_SIZES  # noqa: E402
 from bench_photo_sizes import mosaic  # noqa: E402
 
 from torchiid.model import memory_needed  # noqa: E402
 from torchiid.params import Parameters  # noqa: E402
 
-#: megapixels -> (width, height), 4:3
-SIZES = {0.5: (816, 612), 1: (1152, 864), 2: (1632, 1224), 4: (2304, 1728), 12: (4032, 3024)}
+#: megapixels -> (width, height), 4:3: those of bench_photo_sizes, and 1 and 4 MP
+SIZES = {**PHOTO_SIZES, 1: (1152, 864), 4: (2304, 1728)}
 
 
 def _peak_rss(photo: Path, out: Path, preset: str, max_side: int) -> tuple[float, int]:

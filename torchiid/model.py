@@ -346,9 +346,8 @@ def memory_needed(
     An estimate of the peak growth on the CPU: :data:`BYTES_PER_WORKING_PIXEL` per pixel of
     the working resolution ``params.max_side``, :data:`BYTES_PER_FULL_PIXEL` per pixel of
     the input and :data:`MEMORY_OVERHEAD`, fitted on photos (README "Errors and exit
-    statuses", "Memory": within 2% at full resolution with the ``default`` solvers, once
-    10% under, up to
-    16% over with ``converged``, up to 45% over at the default working resolution); with
+    statuses", "Memory": within 2% at full resolution with the ``default`` solvers, once 10%
+    under; up to 16% over with ``converged``, up to 45% over at 512 px); with
     ``return_stage1`` (:func:`decompose`'s default) 16 bytes more per input pixel (``σ, ρ``
     at full resolution), with ``return_iterations`` 32 bytes per working pixel and
     alternation (``σ, ρ, R, S``). The libraries and the feature extractor, loaded once per
@@ -388,14 +387,14 @@ def _check_memory(batch: int, height: int, width: int, params: Parameters, **fla
     if max(h, w) > default_side:
         at_default = params.replace(max_side=default_side)
         fit = memory_needed(height, width, at_default, batch, **flags)
-        what = "the default working resolution (max_side; CLI --max-side)"
+        what = f"--max-side {default_side}, the default (max_side in Python)"
         if fit <= have:
-            hint = f"at {default_side} px, {what}, it needs about {_gb(fit)}; "
+            hint = f"with {what}, it needs about {_gb(fit)}; "
         else:
-            hint = f"even at {default_side} px, {what}, it needs about {_gb(fit)}; "
+            hint = f"even with {what}, it needs about {_gb(fit)}; "
     raise MemoryLimitError(
         f"decomposing {many}{width}x{height} px {where} needs about {_gb(need)} of memory "
-        f"and {_gb(have)} is available; {hint}{MEMORY_CHECK_VARIABLE}=0 skips this check"
+        f"and {_gb(have)} is available; {hint}set {MEMORY_CHECK_VARIABLE}=0 to try anyway"
     )
 
 

@@ -23,108 +23,89 @@ def _meminfo(tmp_path, available_kb: int):
     return p
 
 
-def _cgroup_files(root, rel, files):
-    where = root.joinpath(*rel)
-    where.mkdir(parents=True, exist_ok=True)
-    for name, text in files.items():
-        (where / name).write_text(text)
+def _available(tmp_path, cgroup: str, groups: dict[str, dict[str, object]], free_gb: int = 16):
+    """``available_memory`` of a machine with ``free_gb`` GB available and these cgroup files.
+
+    ``cgroup`` is the text of ``/proc/self/cgroup``; ``groups`` maps a folder under the
+    cgroup root (``"memory/jobs"``) to its files and their contents.
+    """
+    cg = tmp_path / "cgroup"
+    cg.write_text(cgroup)
+    root = tmp_path / "sys"
+    for rel, files in groups.items():
+        where = root / rel
+        where.mkdir(parents=True, exist_ok=True)
+        for name, text in files.items():
+            (where / name).write_text(str(text))
+    return available_memory(_meminfo(tmp_path, free_gb * 1024 * 1024), cg, root)
 
 
 def test_available_memory_is_memavailable_without_a_cgroup_limit(tmp_path):
-    cg = tmp_path / "cgroup"
-    cg.write_text("0::/user.slice\n")
-    root = tmp_path / "sys"
-    _cgroup_files(root, ["user.slice"], {"memory.max": "max\n", "memory.current": "123\n"})
-    got = available_memory(_meminfo(tmp_path, 5 * 1024 * 1024), cg, root)
-    assert got == 5 * GB
+    groups = {"user.slice": {"memory.max": "max", "memory.current": 123}}
+    assert _available(tmp_path, "0::/user.slice\n", groups, free_gb=5) == 5 * GB
 
 
 def test_a_cgroup_v2_limit_counts_usage_without_its_reclaimable_cache(tmp_path):
-    cg = tmp_path / "cgroup"
-    cg.write_text("0::/docker/abc\n")
-    root = tmp_path / "sys"
     stat = "anon 100\ninactive_file 1073741824\nactive_file 5\n"
-    _cgroup_files(
-        root,
-        ["docker", "abc"],
-        {"memory.max": str(4 * GB), "memory.current": str(3 * GB), "memory.stat": stat},
-    )
+    groups = {"docker/abc": {"memory.max": 4 * GB, "memory.current": 3 * GB, "memory.stat": stat}}
     # the container's 4 GB less 3 GB used, of which 1 GB reclaimable cache: 2 GB, below the
     # machine's 16 GB
-    got = available_memory(_meminfo(tmp_path, 16 * 1024 * 1024), cg, root)
-    assert got == 2 * GB
+    assert _available(tmp_path, "0::/docker/abc\n", groups) == 2 * GB
 
 
 def test_a_cgroup_v1_limit_on_an_ancestor_counts(tmp_path):
-    cg = tmp_path / "cgroup"
-    cg.write_text("9:cpu:/\n4:memory:/jobs/42\n0::/\n")
-    root = tmp_path / "sys"
-    _cgroup_files(
-        root,
-        ["memory", "jobs", "42"],
-        {"memory.limit_in_bytes": str((1 << 63) - 4096), "memory.usage_in_bytes": str(GB)},
-    )
-    _cgroup_files(
-        root,
-        ["memory", "jobs"],
-        {
-            "memory.limit_in_bytes": str(3 * GB),
-            "memory.usage_in_bytes": str(2 * GB),
+    groups = {
+        "memory/jobs/42": {
+            "memory.limit_in_bytes": (1 << 63) - 4096,  # v1's "no limit"
+            "memory.usage_in_bytes": GB,
+        },
+        "memory/jobs": {
+            "memory.limit_in_bytes": 3 * GB,
+            "memory.usage_in_bytes": 2 * GB,
             "memory.stat": "cache 7\ntotal_inactive_file 0\n",
         },
-    )
-    got = available_memory(_meminfo(tmp_path, 16 * 1024 * 1024), cg, root)
-    assert got == GB
-
-
-def test_nothing_readable_means_unknown(tmp_path):
-    assert available_memory(tmp_path / "no", tmp_path / "no", tmp_path / "no") is None
+    }
+    assert _available(tmp_path, "9:cpu:/\n4:memory:/jobs/42\n0::/\n", groups) == GB
 
 
 def test_cgroup_v1_prefers_the_subtree_cache_listed_after_the_groups_own(tmp_path):
     # the kernel lists inactive_file (the group's own pages) before total_inactive_file (the
     # subtree's, which its usage covers): the subtree's counts
-    cg = tmp_path / "cgroup"
-    cg.write_text("4:memory:/job\n")
-    root = tmp_path / "sys"
     stat = "cache 1\ninactive_file 0\ntotal_cache 2\ntotal_inactive_file 2147483648\n"
-    _cgroup_files(
-        root,
-        ["memory", "job"],
-        {
-            "memory.limit_in_bytes": str(4 * GB),
-            "memory.usage_in_bytes": str(3 * GB),
+    groups = {
+        "memory/job": {
+            "memory.limit_in_bytes": 4 * GB,
+            "memory.usage_in_bytes": 3 * GB,
             "memory.stat": stat,
-        },
-    )
-    assert available_memory(_meminfo(tmp_path, 16 * 1024 * 1024), cg, root) == 3 * GB
+        }
+    }
+    assert _available(tmp_path, "4:memory:/job\n", groups) == 3 * GB
 
 
 def test_cgroup_v2_soft_limit_and_an_unlimited_leaf_under_a_limited_parent(tmp_path):
-    cg = tmp_path / "cgroup"
-    cg.write_text("0::/slice/leaf\n")
-    root = tmp_path / "sys"
-    _cgroup_files(root, ["slice", "leaf"], {"memory.max": "max\n", "memory.current": "5\n"})
-    _cgroup_files(
-        root,
-        ["slice"],
-        {"memory.max": str(8 * GB), "memory.high": str(6 * GB), "memory.current": str(GB)},
-    )
+    groups = {
+        "slice/leaf": {"memory.max": "max", "memory.current": 5},
+        "slice": {"memory.max": 8 * GB, "memory.high": 6 * GB, "memory.current": GB},
+    }
     # the parent's memory.high (6 GB), the lower of its two limits, less its 1 GB
-    assert available_memory(_meminfo(tmp_path, 16 * 1024 * 1024), cg, root) == 5 * GB
+    assert _available(tmp_path, "0::/slice/leaf\n", groups) == 5 * GB
 
 
 def test_unreadable_or_garbled_files_are_skipped_not_raised(tmp_path):
     cg = tmp_path / "cgroup"
     cg.write_bytes("0::/caf\u00e9.scope\n".encode())
     root = tmp_path / "sys"
-    _cgroup_files(root, ["caf\ufffd.scope"], {"memory.current": "1"})
+    root.mkdir()
     (root / "memory.max").write_bytes(b"\xff\xfe not a number\n")
     meminfo = tmp_path / "meminfo"
     meminfo.write_bytes(b"MemAvailable: \xff kB\nMemFree: 7 kB\n")
     assert available_memory(meminfo, cg, root) is None
     # a good MemAvailable still counts beside a garbled cgroup
     assert available_memory(_meminfo(tmp_path, 1024), cg, root) == 1024 * 1024
+
+
+def test_nothing_readable_means_unknown(tmp_path):
+    assert available_memory(tmp_path / "no", tmp_path / "no", tmp_path / "no") is None
 
 
 def test_the_estimate_grows_with_the_working_resolution_and_the_stored_state():
@@ -156,7 +137,7 @@ def test_decompose_refuses_before_any_work_what_cannot_fit(monkeypatch):
     msg = str(err.value)
     assert isinstance(err.value, TorchiidError)
     assert "128x96 px at full resolution" in msg and "is available" in msg
-    assert "TORCHIID_MEMORY_CHECK=0" in msg
+    assert "set TORCHIID_MEMORY_CHECK=0 to try anyway" in msg
 
 
 def test_the_message_names_the_default_working_resolution_when_it_would_fit(monkeypatch):
@@ -167,12 +148,12 @@ def test_the_message_names_the_default_working_resolution_when_it_would_fit(monk
     monkeypatch.setattr(model, "available_memory", lambda: at_default + 1)
     with pytest.raises(MemoryLimitError) as err:
         decompose(img, full)
-    assert "; at 512 px, the default working resolution" in str(err.value)
+    assert "; with --max-side 512, the default" in str(err.value)
     # where even that would not fit, the message says so
     monkeypatch.setattr(model, "available_memory", lambda: at_default - 1)
     with pytest.raises(MemoryLimitError) as err:
         decompose(img, full)
-    assert "even at 512 px" in str(err.value)
+    assert "even with --max-side 512" in str(err.value)
 
 
 def test_the_estimate_counts_what_the_caller_asks_to_keep():

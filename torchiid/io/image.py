@@ -851,14 +851,7 @@ def save_codes(path: str | os.PathLike, rgb: np.ndarray) -> Path:
     The codes are written unchanged (no colour encoding), e.g. a 16-bit linear PNG whose
     codes the caller computed.
     """
-    rgb = np.asarray(rgb)
-    if rgb.dtype not in (np.uint8, np.uint16) or rgb.ndim not in (2, 3):
-        raise ImageError(
-            f"save_codes takes an (H, W[, 3]) uint8 or uint16 array, got {rgb.dtype} {rgb.shape}"
-        )
-    if rgb.ndim == 3 and rgb.shape[2] != 3:
-        raise ImageError(f"save_codes takes 3 colour channels, got {rgb.shape[2]}")
-    payload = np.ascontiguousarray(rgb[..., ::-1]) if rgb.ndim == 3 else rgb
+    payload = _code_payload(rgb, "save_codes")
     path = Path(path)
     _atomic_write(path, payload)
     return path
@@ -871,18 +864,22 @@ def encode_codes(rgb: np.ndarray, suffix: str = ".png") -> np.ndarray:
     :func:`save_encoded`: the encoding releases the GIL, so several files can be encoded at
     once in threads while their writing stays in order.
     """
-    rgb = np.asarray(rgb)
-    if rgb.dtype not in (np.uint8, np.uint16) or rgb.ndim not in (2, 3):
-        raise ImageError(
-            f"encode_codes takes an (H, W[, 3]) uint8 or uint16 array, got {rgb.dtype} {rgb.shape}"
-        )
-    if rgb.ndim == 3 and rgb.shape[2] != 3:
-        raise ImageError(f"encode_codes takes 3 colour channels, got {rgb.shape[2]}")
-    payload = np.ascontiguousarray(rgb[..., ::-1]) if rgb.ndim == 3 else rgb
-    ok, buf = cv2.imencode(suffix, payload)
+    ok, buf = cv2.imencode(suffix, _code_payload(rgb, "encode_codes"))
     if not ok:
         raise ImageError(f"OpenCV cannot encode a {suffix} file")
     return buf
+
+
+def _code_payload(rgb: np.ndarray, who: str) -> np.ndarray:
+    """``rgb`` checked and in OpenCV's channel order (BGR), for :func:`save_codes` and co."""
+    rgb = np.asarray(rgb)
+    if rgb.dtype not in (np.uint8, np.uint16) or rgb.ndim not in (2, 3):
+        raise ImageError(
+            f"{who} takes an (H, W[, 3]) uint8 or uint16 array, got {rgb.dtype} {rgb.shape}"
+        )
+    if rgb.ndim == 3 and rgb.shape[2] != 3:
+        raise ImageError(f"{who} takes 3 colour channels, got {rgb.shape[2]}")
+    return np.ascontiguousarray(rgb[..., ::-1]) if rgb.ndim == 3 else rgb
 
 
 def save_encoded(path: str | os.PathLike, encoded: np.ndarray | bytes) -> Path:
