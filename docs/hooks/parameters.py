@@ -1,9 +1,9 @@
 """MkDocs hook: the Parameters reference, generated from the dataclass itself.
 
-``docs/reference/parameters.md`` holds the marker ``<!-- parameters-reference -->``; this hook replaces it
-with one table per group of :class:`torchiid.params.Parameters` and a table of each preset's
-differences from the default. A field whose type is itself a dataclass is a group and is walked
-recursively; every other field is a row: its name, type and default, and from the field's
+``docs/reference/parameters.md`` holds the marker ``<!-- parameters-reference -->``; this hook
+replaces it with one table per group of :class:`torchiid.params.Parameters` and a table of each
+preset's differences from the default. A field whose type is itself a dataclass is a group and
+is walked recursively; every other field is a row: its name, type and default, and from the field's
 ``metadata`` the keys ``"doc"`` (meaning), ``"paper"`` (the paper's value; ``None`` where the
 paper has none), ``"valid"`` (the valid range, as text) and ``"why"`` (why the default differs
 from the paper's value). A field without metadata falls back on the class docstring's entry for
