@@ -50,7 +50,7 @@ def test_layers_multiply_back_to_the_image():
 def test_full_method_beats_stage1_only_and_identity_on_noisy_mondrian(seed):
     # default preset with the paper's S_l (t_e 0), k = 3, measured (seeds 0-3): full
     # 0.0010-0.0018, Stage 1 only 0.0010-0.0022, R = I 0.0046-0.0115. With the default's t_e
-    # (0.015) full and Stage 1 only score 20-40% worse (README "Quality on MIT-Berkeley"), and
+    # (0.015) full and Stage 1 only score 20-40% worse (documentation, Method page), and
     # they tie on seeds 0 and 3 (full 0.00197 against 0.00193, 0.00135 against 0.00132):
     # these pixel-sharp synthetic edges have no mixed pixels for t_e to find, so it only
     # removes S_l's ties. The claim is about the paper's alternation, so S_p's base is the

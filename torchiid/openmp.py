@@ -6,7 +6,7 @@ parallel region before it sleeps. The pipeline alternates torch operations with 
 kernels, which run on other threads (numba's own OpenMP runtime and a small band pool), so
 on a machine with few cores the spinning torch threads take the cores those kernels need.
 With 30,000 a 512×384 photo took 1.67–1.72 s instead of 1.78–1.88 s on 2 cores (three
-interleaved pairs), with the same results (README "Speed and memory"). A value the user has
+interleaved pairs), with the same results (documentation, Benchmarks page). A value the user has
 set is kept; the setting only takes effect when ``torchiid`` is imported before ``torch``
 (libgomp reads it once, at load), as the command line does. Other OpenMP runtimes (LLVM's,
 Intel's) ignore it.
@@ -26,6 +26,6 @@ os.environ.setdefault("GOMP_SPINCOUNT", SPIN_COUNT)
 if TOO_LATE and os.environ["GOMP_SPINCOUNT"] == SPIN_COUNT:
     logging.getLogger(__name__).debug(
         "torch was imported before torchiid, so GOMP_SPINCOUNT=%s does not reach torch's "
-        "OpenMP threads; import torchiid first or export the variable (README 'Python')",
+        "OpenMP threads; import torchiid first or export the variable",
         SPIN_COUNT,
     )

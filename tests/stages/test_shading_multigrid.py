@@ -1,4 +1,4 @@
-"""solve_shading with the multigrid preconditioners (issue 11): same minimiser, far fewer
+"""solve_shading with the multigrid preconditioners: same minimiser, far fewer
 iterations, hierarchy reused across alternations."""
 
 import pytest

@@ -13,7 +13,7 @@ from torchiid.video import VideoDecomposer, VideoOptions
 # The paper's shading weights (no S_s): frame by frame, their shading steps at the Mondrian's
 # chromaticity edges by an amount that changes from frame to frame, the flicker the video loop
 # is for. With S_s (the default) this sequence hardly flickers frame by frame (warping error
-# 0.00021 against 0.00260, README "Video"), so it cannot show what the loop removes.
+# 0.00021 against 0.00260; documentation, Benchmarks page), so it cannot show what the loop removes.
 PARAMS = Parameters().replace(iterations=3, lambda_m=0.02, lambda_s=0.0)
 FAST = Parameters().replace(iterations=1, use_sc=False, use_sm=False, use_rm=False)
 
@@ -64,7 +64,7 @@ def test_temporal_consistency_on_the_moving_mondrian(sequence, frame_by_frame, o
     frames = run(sequence, options)
     we_true, we_est, lmse = scores(sequence, frames)
     fb_true, fb_est, fb_lmse = frame_by_frame
-    # the targets: at least 3x less warping error, per-frame LMSE at most 5% worse
+    # the video loop's targets: at least 3x less warping error, per-frame LMSE at most 5% worse
     assert we_true * 3 <= fb_true, (we_true, fb_true)
     assert lmse <= 1.05 * fb_lmse, (lmse, fb_lmse)
     # also measured with the flow estimated on the frames, as for a real video

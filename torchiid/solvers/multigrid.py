@@ -1,4 +1,4 @@
-"""Multigrid preconditioners for the shading solve (issue 11), and a PCG that records its history.
+"""Multigrid preconditioners for the shading solve, and a PCG that records its history.
 
 The shading system ``A = D_m Psi D_m + diag(extra)`` (Eq. 1 plus the gauge anchor and the pinning
 of masked-out pixels, see :func:`~torchiid.stages.shading.anchored_system`) is a 5x5-stencil graph
