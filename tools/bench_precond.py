@@ -1,7 +1,7 @@
-"""Benchmark preconditioners of the Stage-1 shading solve on real photos (issue 11).
+"""Benchmark preconditioners of the Stage-1 shading solve on real photos.
 
 For every size the full system of alternation 1 (all four priors, matting base = the smoothed
-image) and of alternation 3 (``p.shading_weights(3)``, matting base = a reflectance estimate) is
+image) and of alternation 3 (``p.alternation(3)``, matting base = a reflectance estimate) is
 solved by PCG from the cold start of ``solve_shading`` (the target mean), with
 
 * ``jacobi``     -- the inverse diagonal (what ``solve_shading`` uses today, without its
@@ -11,7 +11,7 @@ solved by PCG from the cold start of ``solve_shading`` (the target mean), with
 * ``torch-mg``   -- :class:`~torchiid.solvers.multigrid.GalerkinMultigrid` (torch only);
 * ``hsc``        -- :class:`~torchiid.solvers.multigrid.HSCPreconditioner` (Krishnan et al.);
 * ``*-reuse``    -- alternation 1's preconditioner applied to alternation 3's matrix (no setup);
-* ``shipped``    -- ``solve_shading`` with ``Parameters().shading_options()`` as the pipeline
+* ``shipped``    -- ``solve_shading`` with ``Parameters().shading`` as the pipeline
                     runs it (cascadic Jacobi PCG, capped): its iterations and final residual.
 
 Columns: setup seconds, iterations to relative residual 1e-4 and 1e-5, solve seconds to 1e-4
@@ -126,7 +126,7 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     warnings.simplefilter("ignore", ConvergenceWarning)
     p = Parameters()
-    o = p.shading_options()
+    o = p.shading
     print(f"image={args.image} threads={torch.get_num_threads()} float32 PCG, cold start")
     head = (
         f"{'precond':<16} {'setup':>8} {'it1e-4':>6} {'it1e-5':>6} {'s@1e-4':>8} {'s@1e-5':>8} "
@@ -143,7 +143,7 @@ def main() -> None:
         problems = {1: problem, 3: problem.replace(base_image=smooth_base(refl, 1.0))}
         systems, precs = {}, {}
         for alt, pr in problems.items():
-            built = build_shading_system(pr, p.shading_weights(alt), o)
+            built = build_shading_system(pr, p.alternation(alt)[0])
             systems[alt] = anchored_system(built.total, img, None, o.anchor, o.dark_eps)
         print(f"\n{w}x{h} ({h * w} px)")
         print(head)
@@ -176,14 +176,14 @@ def main() -> None:
             if "shipped" not in args.skip:
                 pr = problems[alt]
                 t = time.perf_counter()
-                out = solve_shading(pr, p.shading_weights(alt), o)
+                out = solve_shading(pr, p.alternation(alt)[0], warn=False)
                 total = time.perf_counter() - t
                 d = out.diagnostics
                 build = sum(v for k, v in d.times.items() if k not in ("solve", "coarse"))
                 print(
                     f"{'shipped':<16} {'':>8} {d.iterations:>6} {'':>6} {total - build:8.2f} "
-                    f"{'':>8} {total - build:8.2f}  (levels={o.levels}, max_iter={o.max_iter}, "
-                    f"residual {float(d.residual.max()):.1e})"
+                    f"{'':>8} {total - build:8.2f}  (levels={o.coarse_levels}, "
+                    f"max_iter={o.cg_max_iter}, residual {float(d.residual.max()):.1e})"
                 )
 
 
