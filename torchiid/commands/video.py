@@ -196,7 +196,7 @@ def _check_same_settings(out: Path, params: Parameters, options: VideoOptions) -
     new = json.loads(_params_json(params, options))
     a, b = _flatten(old), _flatten(new)
     same = {"params.torchiid_version"}  # the version that wrote the file, not a setting
-    changed = sorted(k for k in a.keys() | b.keys() - same if a.get(k, None) != b.get(k, None))
+    changed = sorted(k for k in (a.keys() | b.keys()) - same if a.get(k, None) != b.get(k, None))
     if changed:
         shown = ", ".join(f"{k} {a.get(k)!r} -> {b.get(k)!r}" for k in changed[:3])
         more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
