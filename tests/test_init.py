@@ -33,7 +33,7 @@ def test_warm_start_converges_to_the_cold_start():
     s0 = torch.nn.functional.avg_pool2d(m.shading, 3, 1, 1, count_include_pad=False) * 3.0
     warm = decompose(m.image, CONVERGED, init=(m.reflectance / 3.0, s0))
     assert cold.converged and warm.converged
-    assert warm.solves[0].cap == CONVERGED.cg_max_iter  # warm-started PCG (no cascade)
+    assert warm.solves[0].cap == CONVERGED.shading.cg_max_iter  # warm-started PCG (no cascade)
     torch.testing.assert_close(warm.reflectance, cold.reflectance, atol=1e-3, rtol=0)
     torch.testing.assert_close(warm.shading, cold.shading, atol=0, rtol=1e-3)
     torch.testing.assert_close(warm.reflectance * warm.shading, m.image.float().double())

@@ -72,7 +72,7 @@ def test_full_method_beats_stage1_only_and_identity_on_noisy_mondrian(seed):
     assert e_full < e_stage1 < e_identity
     # the mixed matting base does not cost the full method on piecewise-constant albedo,
     # where the paper's base (the flat previous reflectance) is the right one
-    mixed = decompose(img, p.replace(base_mix=Parameters().base_mix))
+    mixed = decompose(img, p.replace(base_mix=Parameters().shading.base_mix))
     assert lmse(mixed.reflectance, mixed.shading) < e_full
 
 
@@ -188,7 +188,7 @@ def test_colour_weights_option_changes_stage2():
     img = mondrian(64, 64, seed=4).image
     bi = decompose(img, FAST)
     wide = decompose(img, FAST.replace(colour_weights="wide"))
-    assert FAST.colour_weights == "bi"
+    assert FAST.reflectance.colour_weights == "bi"
     assert not torch.allclose(bi.reflectance, wide.reflectance, atol=1e-4)
 
 
@@ -336,3 +336,17 @@ def test_print_preset_keeps_the_text_of_a_photographed_page_in_the_reflectance()
         ratios[preset] = (r[ink].mean() / r[paper].mean(), s[ink].mean() / s[paper].mean())
     assert ratios["print"][0] < 0.3 and ratios["print"][1] > 0.5
     assert ratios["default"][0] > 2 * ratios["print"][0]
+
+
+def test_the_public_names_stay_importable_from_torchiid_model():
+    # the steps live in torchiid.pipeline; torchiid.model keeps the public names
+    import torchiid.model as model
+
+    names = {
+        "Decomposition", "SolveReport", "FullLayers", "IterationLayers", "decompose",
+        "full_resolution_layers", "IntrinsicDecomposer", "memory_needed",
+        "BYTES_PER_WORKING_PIXEL", "BYTES_PER_FULL_PIXEL", "MEMORY_OVERHEAD",
+        "MEMORY_CHECK_VARIABLE",
+    }  # fmt: skip
+    assert names <= set(model.__all__)
+    assert all(getattr(model, name) is not None for name in names)

@@ -169,7 +169,7 @@ def test_shading_is_smooth_inside_a_black_region(seed):
     assert _high_frequency(out.shading.log()) < 0.005
     blind = decompose(img, p.replace(dark_level=0.0, clip_level=0.0))
     assert _high_frequency(blind.shading.log()) > 0.03
-    conf = pixel_confidence(img, p.dark_level, p.clip_level)
+    conf = pixel_confidence(img, p.shading.dark_level, p.shading.clip_level)
     assert float(conf[..., 40:88, 56:104].max()) == 0 and float(conf[..., :, :20].min()) > 0
 
 

@@ -20,7 +20,8 @@ import time
 import torch
 
 from torchiid.features.segmentation import felzenszwalb_segments
-from torchiid.stages.config import ReflectanceOptions, ReflectanceProblem, ReflectanceWeights
+from torchiid.params import ReflectanceParameters
+from torchiid.stages.config import ReflectanceProblem
 from torchiid.stages.reflectance import solve_reflectance
 from torchiid.synthetic import mondrian
 
@@ -52,14 +53,15 @@ def main() -> None:
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats()
     problem = ReflectanceProblem(rho, s.image, gpca=gpca, segments=segments)
-    options = ReflectanceOptions(
-        max_outer=args.max_outer, cg_max_iter=args.cg_max_iter, window=args.window
+    # the paper's gammas
+    options = ReflectanceParameters(
+        bregman_iter=args.max_outer, bregman_cg_iter=args.cg_max_iter, window=args.window
     )
     variants = [
-        ("A", ReflectanceWeights(gamma_m=0, gamma_g=0), options),
-        ("A+B merged", ReflectanceWeights(gamma_g=0), options),
-        ("A+B+C merged", ReflectanceWeights(), options),
-        ("A+B+C separate", ReflectanceWeights(), options.replace(merge_stencil_terms=False)),
+        ("A", options.replace(gamma_m=0, gamma_g=0), True),
+        ("A+B merged", options.replace(gamma_g=0), True),
+        ("A+B+C merged", options, True),
+        ("A+B+C separate", options, False),
     ]
     print(
         f"image {args.width}x{args.height}, device {dev}, threads {torch.get_num_threads()}, "
@@ -73,11 +75,11 @@ def main() -> None:
     )
     print(hdr)
     print("-" * len(hdr))
-    for name, weights, opts in variants:
+    for name, opts, merge in variants:
         best = None
         for _ in range(args.repeat):
             t0 = time.perf_counter()
-            r = solve_reflectance(problem, weights, opts)
+            r = solve_reflectance(problem, opts, merge=merge)
             if dev.type == "cuda":
                 torch.cuda.synchronize()
             total = time.perf_counter() - t0

@@ -19,9 +19,10 @@ import warnings
 import torch
 
 from torchiid.core.exceptions import ConvergenceWarning
+from torchiid.params import ShadingParameters
 from torchiid.priors.lle import patch_rgb_features
 from torchiid.priors.shading_terms import shading_stencil
-from torchiid.stages.config import ShadingOptions, ShadingProblem, ShadingWeights
+from torchiid.stages.config import ShadingProblem
 from torchiid.stages.shading import solve_shading
 from torchiid.synthetic import mondrian
 
@@ -57,14 +58,20 @@ def main() -> None:
     )
     print(f"threads={args.threads} levels={args.levels} tol={args.tol} max_iter={args.max_iter}")
     print(head)
-    weights = ShadingWeights()  # the paper's: all four priors on
-    options = ShadingOptions(tol=args.tol, max_iter=args.max_iter, levels=args.levels)
+    # the paper's weights (all four priors on, no S_s), without the pixel confidence and the
+    # colour-edge cut, the paper's matting base
+    weights = ShadingParameters(
+        lambda_m=0.02, lambda_s=0.0, t_e=0.0, dark_level=0.0, clip_level=0.0, base_mix=1.0
+    )
+    options = weights.replace(
+        cg_tol=args.tol, cg_max_iter=args.max_iter, warm_cg_max_iter=0, coarse_levels=args.levels
+    )
     for width in args.sizes:
         syn, problem = inputs(width, args.device)
         warm_up = ShadingProblem(syn.image[..., :32, :32])
-        solve_shading(warm_up, weights, ShadingOptions(tol=1e-2, max_iter=5))
+        solve_shading(warm_up, weights.replace(cg_tol=1e-2, cg_max_iter=5, coarse_levels=5))
         t0 = time.perf_counter()
-        res = solve_shading(problem, weights, options)
+        res = solve_shading(problem, options)
         total = time.perf_counter() - t0
         d = res.diagnostics
         s, gt = res.log_shading.flatten(), syn.shading.log().flatten()

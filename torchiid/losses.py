@@ -90,8 +90,8 @@ def image_priors(
             (default: the image itself).
         base_image: the previous reflectance, from which the matting base of ``S_p`` is made
             as in the solver's later alternations (mixed with the smoothed image by
-            ``params.base_mix``; 1 uses it as the base itself); default: the Gaussian-smoothed
-            image.
+            ``params.shading.base_mix``; 1 uses it as the base itself); default: the
+            Gaussian-smoothed image.
         merge: build ``A`` and ``B`` as the solver's merged term ``"A+B"``.
 
     Returns:
@@ -101,15 +101,14 @@ def image_priors(
     msk = None if mask is None else as_mask(mask, image)
     if features is None:
         features = semantic_features(image, params)
+    shading, reflectance = params.alternation(alternation)
     sh = build_shading_system(
-        features.shading_problem(image, base_image=base_image, mask=msk),
-        params.shading_weights(alternation),
-        params.shading_options(),
+        features.shading_problem(image, base_image=base_image, mask=msk), shading, seed=params.seed
     )
     rt = build_reflectance_terms(
         features.reflectance_problem(image if rho is None else rho, image, mask=msk),
-        params.reflectance_weights(alternation),
-        params.reflectance_options().replace(merge_stencil_terms=merge),
+        reflectance,
+        merge=merge,
     )
     b, _, h, w = image.shape
     return ImagePriors(shading_priors(sh.terms), reflectance_priors(rt.terms), (b, h, w))
@@ -199,9 +198,9 @@ class PriorLoss(nn.Module):
         self.alternation = alternation
         self.use_shading = use_shading
         self.use_reflectance = use_reflectance
-        p = self.params
+        r = self.params.reflectance
         self.reconstruction_weight = (
-            p.gamma_a * p.value_scale if reconstruction_weight is None else reconstruction_weight
+            r.gamma_a * r.value_scale if reconstruction_weight is None else reconstruction_weight
         )
         self.shading_scale = shading_scale
         self.reflectance_scale = reflectance_scale
@@ -231,7 +230,7 @@ class PriorLoss(nn.Module):
             log_r, log_s = reflectance, shading
             reflectance, shading = log_r.exp(), log_s.exp()
         else:
-            log_s = shading.clamp_min(self.params.shading_floor).log()
+            log_s = shading.clamp_min(self.params.reflectance.shading_floor).log()
         n = image.shape[-2] * image.shape[-1]
         out = {
             "reconstruction": self.reconstruction_weight

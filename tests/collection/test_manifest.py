@@ -354,3 +354,16 @@ def test_a_system_error_without_an_interrupt_still_fails_the_image(tmp_path):
     settings = RunSettings(out=tmp_path / "out", params=Parameters(), method="semantic")
     result = process_image(ImageJob(0, str(path), "a"), settings, decompose_fn=_plain_bug)
     assert result.status == "failed" and result.failure == "error"
+
+
+def test_the_parameters_hash_does_not_depend_on_the_version(monkeypatch, tmp_path):
+    # a new version that computes the same files keeps a collection's records
+    import torchiid
+    from torchiid.collection.job import RunSettings, params_hash
+
+    settings = RunSettings(out=tmp_path, params=Parameters.preset("converged"))
+    before = params_hash(settings)
+    monkeypatch.setattr(torchiid, "__version__", "99.0.0")
+    assert json.loads(settings.params.to_json())["torchiid_version"] == "99.0.0"
+    assert params_hash(settings) == before
+    assert params_hash(RunSettings(out=tmp_path, params=Parameters())) != before

@@ -7,6 +7,7 @@ import pytest
 from skimage import data
 
 import torchiid.model as model
+import torchiid.pipeline.memory as memory
 from torchiid.cli import main
 from torchiid.core.exceptions import MemoryLimitError, TorchiidError
 from torchiid.core.memory import available_memory
@@ -126,7 +127,7 @@ def test_decompose_refuses_before_any_work_what_cannot_fit(monkeypatch):
     img = mondrian(96, 128).image
     p = Parameters().replace(iterations=1, max_side=0)
     need = memory_needed(96, 128, p)
-    monkeypatch.setattr(model, "available_memory", lambda: need - 1)
+    monkeypatch.setattr(memory, "available_memory", lambda: need - 1)
 
     def no_work(*args, **kwargs):  # pragma: no cover - must not be reached
         raise AssertionError("the features were computed")
@@ -145,12 +146,12 @@ def test_the_message_names_the_default_working_resolution_when_it_would_fit(monk
     full = Parameters().replace(iterations=1, max_side=0)
     flags = {"return_stage1": True}  # decompose's default
     at_default = memory_needed(600, 800, **flags)
-    monkeypatch.setattr(model, "available_memory", lambda: at_default + 1)
+    monkeypatch.setattr(memory, "available_memory", lambda: at_default + 1)
     with pytest.raises(MemoryLimitError) as err:
         decompose(img, full)
     assert "; with --max-side 512, the default" in str(err.value)
     # where even that would not fit, the message says so
-    monkeypatch.setattr(model, "available_memory", lambda: at_default - 1)
+    monkeypatch.setattr(memory, "available_memory", lambda: at_default - 1)
     with pytest.raises(MemoryLimitError) as err:
         decompose(img, full)
     assert "even with --max-side 512" in str(err.value)
@@ -168,7 +169,7 @@ def test_a_failing_memory_probe_never_stops_a_decomposition(monkeypatch):
     def broken():
         raise RuntimeError("no /proc here")
 
-    monkeypatch.setattr(model, "available_memory", broken)
+    monkeypatch.setattr(memory, "available_memory", broken)
     p = Parameters().replace(iterations=1, use_sc=False, use_sm=False, use_rm=False)
     out = decompose(mondrian(64, 64).image, p)
     assert out.reflectance.shape == (1, 3, 64, 64)
@@ -177,13 +178,13 @@ def test_a_failing_memory_probe_never_stops_a_decomposition(monkeypatch):
 def test_the_check_can_be_switched_off_and_does_not_touch_what_fits(monkeypatch):
     img = mondrian(64, 64).image
     p = Parameters().replace(iterations=1, use_sc=False, use_sm=False, use_rm=False)
-    monkeypatch.setattr(model, "available_memory", lambda: 1)
+    monkeypatch.setattr(memory, "available_memory", lambda: 1)
     monkeypatch.setenv("TORCHIID_MEMORY_CHECK", "0")
     out = decompose(img, p)
     assert out.reflectance.shape == (1, 3, 64, 64)
     # unknown memory (not Linux): no check
     monkeypatch.delenv("TORCHIID_MEMORY_CHECK")
-    monkeypatch.setattr(model, "available_memory", lambda: None)
+    monkeypatch.setattr(memory, "available_memory", lambda: None)
     decompose(img, p)
 
 
@@ -194,7 +195,7 @@ def test_cli_fails_only_the_photo_that_cannot_fit(tmp_path, monkeypatch, capsys)
     cv2.imwrite(str(tmp_path / "big.png"), big[..., ::-1])
     p = Parameters().replace(max_side=0)
     between = (memory_needed(72, 96, p) + memory_needed(160, 240, p)) // 2
-    monkeypatch.setattr(model, "available_memory", lambda: between)
+    monkeypatch.setattr(memory, "available_memory", lambda: between)
     out = tmp_path / "out"
     argv = ["decompose", str(tmp_path), "-o", str(out), "--max-side", "0"]
     status = main([*argv, "--iterations", "1", "--no-progress"])
@@ -207,7 +208,7 @@ def test_cli_fails_only_the_photo_that_cannot_fit(tmp_path, monkeypatch, capsys)
     assert (out / "small-reflectance.png").exists()
     assert not list(out.glob("big-*"))
     # not a bad input: with memory to spare (or the check off) a rerun decomposes it
-    monkeypatch.setattr(model, "available_memory", lambda: None)
+    monkeypatch.setattr(memory, "available_memory", lambda: None)
     status = main([*argv, "--iterations", "1", "--no-progress"])
     assert status == 0
     assert (out / "big-reflectance.png").exists()

@@ -29,8 +29,8 @@ def photo_system():
     p = Parameters()
     f = semantic_features(img, p)
     problem = ShadingProblem(img, f.patch_centers, f.patch_features, f.similarity, None, None)
-    o = p.shading_options()
-    built = build_shading_system(problem, p.shading_weights(1), o)
+    o = p.shading
+    built = build_shading_system(problem, o)
     assert set(built.terms) == {"S_c", "S_p", "S_m", "S_l", "S_s"}
     sys32 = anchored_system(built.total, img, None, o.anchor, o.dark_eps)
     return built.total, sys32

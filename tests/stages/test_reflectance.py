@@ -2,10 +2,11 @@ import pytest
 import torch
 
 from torchiid.core.exceptions import ImageError, ParameterError, ShapeError
+from torchiid.params import Parameters, ReflectanceParameters
 from torchiid.priors.reflectance_terms import COLOUR_WEIGHTS, lab_features, stencil_affinity
 from torchiid.priors.representatives import global_pair_term, representative_pixels
 from torchiid.priors.stencil import Stencil
-from torchiid.stages.config import ReflectanceOptions, ReflectanceProblem, ReflectanceWeights
+from torchiid.stages.config import ReflectanceProblem
 from torchiid.stages.reflectance import (
     ReflectanceCache,
     build_reflectance_terms,
@@ -24,8 +25,8 @@ def _scene(batch=1, h=48, w=64, seed=3, noise=0.03):
     return s, rho, gpca
 
 
-W = ReflectanceWeights()  # the paper's gammas (20, 20, 2) and gamma_a = 1
-OPTS = ReflectanceOptions()
+#: the paper's gammas (20, 20, 2) and gamma_a = 1; 3 Bregman iterations of 5 CG steps
+W = ReflectanceParameters(bregman_iter=3, bregman_cg_iter=5)
 
 
 def _rmse(a, b):
@@ -34,7 +35,7 @@ def _rmse(a, b):
 
 def test_mondrian_l1_solution_is_closer_to_truth_than_rho():
     s, rho, gpca = _scene()
-    r = solve_reflectance(ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels), W, OPTS)
+    r = solve_reflectance(ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels), W)
     before, after = _rmse(rho, s.reflectance), _rmse(r.reflectance, s.reflectance)
     # measured: 0.030 -> 0.012 with the defaults (0.021 with colour_weights="wide")
     assert after < 0.8 * before
@@ -46,50 +47,50 @@ def test_mondrian_l1_solution_is_closer_to_truth_than_rho():
 
 def test_cache_reuses_the_proposal_factor_and_changes_nothing():
     s, rho, gpca = _scene(h=32, w=40)
-    opts = ReflectanceOptions(max_outer=2, cg_max_iter=3, window=5)
+    opts = W.replace(bregman_iter=2, bregman_cg_iter=3, window=5)
     problem = ReflectanceProblem(rho, s.image, gpca=gpca)
     scaled = problem.replace(rho=0.9 * rho)  # new rho, same g̊
     cache = ReflectanceCache()
-    first = solve_reflectance(problem, W, opts, cache=cache)
-    again = solve_reflectance(scaled, W, opts, cache=cache)
+    first = solve_reflectance(problem, opts, cache=cache)
+    again = solve_reflectance(scaled, opts, cache=cache)
     assert cache.hits == 1
-    torch.testing.assert_close(again.reflectance, solve_reflectance(scaled, W, opts).reflectance)
-    torch.testing.assert_close(first.reflectance, solve_reflectance(problem, W, opts).reflectance)
+    torch.testing.assert_close(again.reflectance, solve_reflectance(scaled, opts).reflectance)
+    torch.testing.assert_close(first.reflectance, solve_reflectance(problem, opts).reflectance)
     gpca.mul_(2.0)  # modified in place: the factor is recomputed, not reused
-    solve_reflectance(problem, W, opts, cache=cache)
+    solve_reflectance(problem, opts, cache=cache)
     assert cache.hits == 1
     # the merged A/B weights of both builds live in one storage, written again in place
-    built = [build_reflectance_terms(p, W, opts, cache=cache) for p in (problem, scaled)]
+    built = [build_reflectance_terms(p, opts, cache=cache) for p in (problem, scaled)]
     ptrs = {b.terms["A+B"][1].weights.data_ptr() for b in built}
     assert len(ptrs) == 1 and ptrs == {cache.weights_buffer(rho, 12).data_ptr()}
 
 
 def test_cache_reuses_the_segment_layout_and_changes_nothing():
     s, rho, gpca = _scene(h=32, w=40)
-    opts = ReflectanceOptions(max_outer=2, cg_max_iter=3, window=5)
+    opts = W.replace(bregman_iter=2, bregman_cg_iter=3, window=5)
     mask = torch.ones(1, 1, 32, 40, dtype=torch.bool)
     mask[..., :3, :] = False
     problem = ReflectanceProblem(rho, s.image, segments=s.labels, mask=mask)
     cache = ReflectanceCache()
     for scale in (1.0, 0.8, 1.3):  # a new rho per alternation, the same segments and mask
         p = problem.replace(rho=scale * rho)
-        got = solve_reflectance(p, W, opts, cache=cache)
-        ref = solve_reflectance(p, W, opts)
+        got = solve_reflectance(p, opts, cache=cache)
+        ref = solve_reflectance(p, opts)
         assert torch.equal(got.reflectance, ref.reflectance)
         assert torch.equal(got.num_representatives, ref.num_representatives)
     assert cache.hits == 2
-    solve_reflectance(problem.replace(mask=~mask), W, opts, cache=cache)  # another mask
+    solve_reflectance(problem.replace(mask=~mask), opts, cache=cache)  # another mask
     assert cache.hits == 2
 
 
 def test_batch_equals_one_by_one():
     s, rho, gpca = _scene(batch=2, h=32, w=40)
-    opts = ReflectanceOptions(max_outer=3, cg_max_iter=4, window=5)
-    r = solve_reflectance(ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels), W, opts)
+    opts = W.replace(bregman_iter=3, bregman_cg_iter=4, window=5)
+    r = solve_reflectance(ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels), opts)
     for b in range(2):
         sl = slice(b, b + 1)
         one = ReflectanceProblem(rho[sl], s.image[sl], gpca=gpca[sl], segments=s.labels[sl])
-        r1 = solve_reflectance(one, W, opts)
+        r1 = solve_reflectance(one, opts)
         torch.testing.assert_close(r.reflectance[sl], r1.reflectance, atol=1e-5, rtol=1e-5)
 
 
@@ -98,7 +99,7 @@ def test_mask_keeps_rho_outside():
     mask = torch.ones(1, 1, 24, 32, dtype=torch.bool)
     mask[..., :8, :10] = False
     problem = ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels, mask=mask)
-    r = solve_reflectance(problem, W, ReflectanceOptions(window=5))
+    r = solve_reflectance(problem, W.replace(window=5))
     assert torch.equal(r.reflectance[~mask.expand_as(rho)], rho[~mask.expand_as(rho)])
     assert not torch.equal(r.reflectance[mask.expand_as(rho)], rho[mask.expand_as(rho)])
 
@@ -106,15 +107,18 @@ def test_mask_keeps_rho_outside():
 def test_terms_switch_off():
     s, rho, gpca = _scene(h=20, w=24)
     # the old gamma_m=None (off) is 0 now
-    off_w = ReflectanceWeights(gamma_l=0, gamma_m=0, gamma_g=0)
-    off = solve_reflectance(ReflectanceProblem(rho, s.image, gpca=gpca), off_w, OPTS)
+    off_w = W.replace(gamma_l=0, gamma_m=0, gamma_g=0)
+    off = solve_reflectance(ReflectanceProblem(rho, s.image, gpca=gpca), off_w)
     torch.testing.assert_close(off.reflectance, rho)
-    opts = ReflectanceOptions(window=5)
-    a = solve_reflectance(
-        ReflectanceProblem(rho, s.image), ReflectanceWeights(gamma_m=0, gamma_g=0), opts
+    switched = solve_reflectance(
+        ReflectanceProblem(rho, s.image, gpca=gpca),
+        W.replace(use_rl=False, use_rm=False, use_rg=False),
     )
+    torch.testing.assert_close(switched.reflectance, rho)
+    opts = W.replace(window=5)
+    a = solve_reflectance(ReflectanceProblem(rho, s.image), opts.replace(gamma_m=0, gamma_g=0))
     a_nogpca = solve_reflectance(
-        ReflectanceProblem(rho, s.image, gpca=None), ReflectanceWeights(gamma_g=0), opts
+        ReflectanceProblem(rho, s.image, gpca=None), opts.replace(use_rg=False)
     )
     torch.testing.assert_close(a.reflectance, a_nogpca.reflectance)
     assert int(a.num_representatives[0]) == 0
@@ -127,9 +131,9 @@ def test_merged_and_separate_objectives_are_identical():
     g = torch.Generator().manual_seed(7)
     z0 = (rho + 0.05 * torch.randn(rho.shape, generator=g, dtype=torch.float64)).clamp(0, 1)
     problem = ReflectanceProblem(rho, img, gpca=gp, segments=s.labels)
-    opts = ReflectanceOptions(window=5, max_outer=0, value_scale=1.0)
-    m = solve_reflectance(problem, W, opts.replace(merge_stencil_terms=True), z0=z0)
-    sep = solve_reflectance(problem, W, opts.replace(merge_stencil_terms=False), z0=z0)
+    opts = W.replace(window=5, bregman_iter=1, value_scale=1.0)  # the objective at z0 is row 0
+    m = solve_reflectance(problem, opts, z0=z0, merge=True)
+    sep = solve_reflectance(problem, opts, z0=z0, merge=False)
     # independent objective: γ_l‖v^l Mz‖₁ + γ_m‖v^m Mz‖₁ + γ_g‖v^g C z‖₁ + γ_a‖z − ρ‖²
     w_l, lab_scale = COLOUR_WEIGHTS["bi"]  # the default colour_weights
     rbar = lab_features(rho, luminance_weight=w_l, lab_scale=lab_scale)
@@ -152,36 +156,37 @@ def test_errors():
     s, rho, gpca = _scene(h=16, w=16)
     P = ReflectanceProblem
     with pytest.raises(ShapeError, match="batch size and \\(H, W\\) must match"):
-        solve_reflectance(P(rho, s.image[..., :8]), W, OPTS)
+        solve_reflectance(P(rho, s.image[..., :8]), W)
     bad = rho.clone()
     bad[0, 1, 2, 3] = float("nan")
     with pytest.raises(ImageError, match="rho contains 1 NaN"):
-        solve_reflectance(P(bad, s.image), W, OPTS)
+        solve_reflectance(P(bad, s.image), W)
     with pytest.raises(ShapeError, match=r"expected gpca of shape \(1, d, 16, 16\)"):
-        solve_reflectance(P(rho, s.image, gpca=gpca[..., :8]), W, OPTS)
+        solve_reflectance(P(rho, s.image, gpca=gpca[..., :8]), W)
     with pytest.raises(ShapeError, match="expected a bool mask"):
-        solve_reflectance(P(rho, s.image, mask=torch.ones(1, 1, 16, 16)), W, OPTS)
-    with pytest.raises(ParameterError, match="colour_weights must be one of bi, wide"):
-        solve_reflectance(P(rho, s.image), W, ReflectanceOptions(colour_weights="narrow"))
+        solve_reflectance(P(rho, s.image, mask=torch.ones(1, 1, 16, 16)), W)
     with pytest.raises(ShapeError, match=r"expected segments of shape \(1, 16, 16\)"):
-        solve_reflectance(P(rho, s.image, segments=s.labels[:, :4]), W, OPTS)
-    # parameter checks moved to the config objects' constructors
+        solve_reflectance(P(rho, s.image, segments=s.labels[:, :4]), W)
+    with pytest.raises(ParameterError, match="takes a torchiid.params.ReflectanceParameters"):
+        solve_reflectance(P(rho, s.image), Parameters())
+    # the parameters are checked where they are made
+    with pytest.raises(ParameterError, match="colour_weights must be one of bi, wide"):
+        W.replace(colour_weights="narrow")
     with pytest.raises(ParameterError, match=r"gamma_l must be >= 0"):
-        ReflectanceWeights(gamma_l=-1.0)
-    with pytest.raises(ParameterError, match=r"deviations t > 0 and t_g >= 0 needed"):
-        ReflectanceOptions(t=0.0)
+        W.replace(gamma_l=-1.0)
+    with pytest.raises(ParameterError, match=r"parameter t must be > 0"):
+        W.replace(t=0.0)
 
 
 def test_channels_last_inputs_give_the_same_answer():
     s, rho, gpca = _scene(h=24, w=32)
-    opts = ReflectanceOptions(max_outer=2, cg_max_iter=3, window=5)
-    ref = solve_reflectance(ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels), W, opts)
+    opts = W.replace(bregman_iter=2, bregman_cg_iter=3, window=5)
+    ref = solve_reflectance(ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels), opts)
     cl = torch.channels_last
     r = solve_reflectance(
         ReflectanceProblem(
             rho.to(memory_format=cl), s.image.to(memory_format=cl), gpca=gpca, segments=s.labels
         ),
-        W,
         opts,
         z0=rho.to(memory_format=cl),
     )
@@ -189,26 +194,22 @@ def test_channels_last_inputs_give_the_same_answer():
     assert r.solver.z.is_contiguous()
 
 
-def _tight(opts: ReflectanceOptions) -> ReflectanceOptions:
+def _tight(opts: ReflectanceParameters) -> ReflectanceParameters:
     """The same solve to a relative duality gap of 1e-3: its objective is within 0.1% of the
     minimum, certified (``J* >= ref (1 − 1e-3)``), and ``J* <= ref``."""
-    return ReflectanceOptions(**{**opts.__dict__, "gap_tol": 1e-3, "max_outer": 3000})
+    return opts.replace(bregman_gap_tol=1e-3, bregman_iter=3000)
 
 
 def test_converged_preset_tolerance_puts_the_objective_near_its_minimum():
     # the `converged` preset's Split-Bregman stops on a duality gap of 0.5%: Eq. 12's objective
     # ends within 0.5% of its minimum (J* <= ref: end - J* <= 0.005 end, end <= ref / 0.995)
-    from torchiid.params import Parameters
-
     s, rho, gpca = _scene()
     problem = ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels)
-    preset = Parameters.preset("converged")
-    opts = ReflectanceOptions(**{**preset.reflectance_options().__dict__, "track_objective": True})
-    assert opts.gap_tol == 0.005 and opts.theta_floor == 0.25
-    W = preset.reflectance_weights()  # the preset's gammas
-    r = solve_reflectance(problem, W, opts)
+    opts = Parameters.preset("converged").reflectance  # the preset's gammas and solver
+    assert opts.bregman_gap_tol == 0.005 and opts.bregman_theta_floor == 0.25
+    r = solve_reflectance(problem, opts)
     assert bool(r.solver.converged.all()) and float(r.solver.gap[0]) < 0.005
-    tight = solve_reflectance(problem, W, _tight(opts)).solver
+    tight = solve_reflectance(problem, _tight(opts)).solver
     assert bool(tight.converged.all())
     ref = float(tight.objective[-1, 0])
     end = float(r.solver.objective[-1, 0])
@@ -220,53 +221,50 @@ def test_warm_bregman_state_reaches_the_same_minimum_in_fewer_iterations():
     # a second solve on a changed rho (the next alternation: new rho, weights scaled by tau)
     # started from the first solve's Bregman variable ends at the cold start's objective
     # (within the tolerance's 2%) in fewer Bregman iterations
-    from torchiid.params import Parameters
-
     s, rho, gpca = _scene()
     problem = ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels)
-    opts = Parameters.preset("converged").reflectance_options()
-    assert opts.warm_state  # the preset warm-starts
-    opts = ReflectanceOptions(**{**opts.__dict__, "track_objective": True, "warm_state": False})
-    warm_opts = ReflectanceOptions(**{**opts.__dict__, "warm_state": True})
+    opts = Parameters.preset("converged").reflectance
+    assert opts.bregman_warm_state  # the preset warm-starts
+    # the paper's gammas (the preset's are halved: 49 vs 49 Bregman iterations here)
+    opts = opts.replace(bregman_warm_state=False, gamma_l=20.0, gamma_m=20.0, gamma_g=2.0)
+    warm_opts = opts.replace(bregman_warm_state=True)
     g = torch.Generator().manual_seed(5)
     rho2 = (rho * (1 + 0.05 * torch.randn(rho.shape, generator=g))).clamp(0, 1)
     nxt = problem.replace(rho=rho2)
-    w2 = W.step(1.2)  # the paper's gammas (with the preset's halved ones: 49 vs 49 here)
     cache = ReflectanceCache()
-    first = solve_reflectance(problem, W, warm_opts, cache=cache)
+    first = solve_reflectance(problem, warm_opts, cache=cache)
     assert cache.state_valid
     # kept in 16-bit fixed point, with the step of the threshold that wrote it
     assert cache._state.dtype == torch.int16 and 0 < cache.state_step < 1e-3
-    warm = solve_reflectance(nxt, w2, warm_opts, z0=first.reflectance, cache=cache)
-    cold = solve_reflectance(nxt, w2, opts, z0=first.reflectance, cache=ReflectanceCache())
+    warm = solve_reflectance(nxt, warm_opts.step(1.2), z0=first.reflectance, cache=cache)
+    cold = solve_reflectance(nxt, opts.step(1.2), z0=first.reflectance, cache=ReflectanceCache())
     assert bool(warm.solver.converged.all()) and bool(cold.solver.converged.all())
     n_warm, n_cold = int(warm.solver.outer_iterations[0]), int(cold.solver.outer_iterations[0])
     assert n_warm < n_cold
-    ref = float(solve_reflectance(nxt, w2, _tight(opts)).solver.objective[-1, 0])
+    ref = float(solve_reflectance(nxt, _tight(opts.step(1.2))).solver.objective[-1, 0])
     for r in (warm, cold):
         assert ref * (1 - 1e-3) <= float(r.solver.objective[-1, 0]) <= ref / 0.995
     # without the option, a cache's stored state is never read
-    again = solve_reflectance(nxt, w2, opts, z0=first.reflectance, cache=cache)
+    again = solve_reflectance(nxt, opts.step(1.2), z0=first.reflectance, cache=cache)
     torch.testing.assert_close(again.reflectance, cold.reflectance)
 
 
 def test_weights_too_small_for_the_fixed_point_state_keep_it_in_float32():
     # λ = γ / θ below what a 16-bit state's float32 step resolves: the cache stores the state
     # in float32 and the warm-started solve runs as before, with no error
-    from torchiid.params import Parameters
-
     s, rho, gpca = _scene()
     problem = ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels)
-    opts = Parameters.preset("converged").reflectance_options()
-    tiny = ReflectanceWeights(gamma_l=1e-36, gamma_m=1e-36, gamma_g=1e-36)
+    opts = Parameters.preset("converged").reflectance.replace(gamma_a=1.0)
+    tiny = opts.replace(gamma_l=1e-36, gamma_m=1e-36, gamma_g=1e-36)
     cache = ReflectanceCache()
     for _ in range(2):
-        r = solve_reflectance(problem, tiny, opts, cache=cache)
+        r = solve_reflectance(problem, tiny, cache=cache, track_objective=False)
         assert cache._state.dtype == torch.float32 and cache.state_valid
     # with no regularisation to speak of the answer is rho itself
     torch.testing.assert_close(r.reflectance, rho, atol=1e-5, rtol=0)
     # ordinary weights afterwards: the same cache goes back to 16 bits (and starts cold)
-    solve_reflectance(problem, W, opts, cache=cache)
+    paper = opts.replace(gamma_l=20.0, gamma_m=20.0, gamma_g=2.0)
+    solve_reflectance(problem, paper, cache=cache, track_objective=False)
     assert cache._state.dtype == torch.int16
 
 
@@ -276,16 +274,15 @@ def test_a_solve_that_keeps_no_state_leaves_the_cache_cold():
     # cold, exactly as with a fresh cache
     s, rho, gpca = _scene()
     problem = ReflectanceProblem(rho, s.image, gpca=gpca, segments=s.labels)
-    from torchiid.params import Parameters
-
-    opts = Parameters.preset("default").reflectance_options()
-    assert not opts.warm_state and opts.max_outer == 2
+    opts = Parameters.preset("default").reflectance
+    assert not opts.bregman_warm_state and opts.bregman_iter == 2
     cache = ReflectanceCache()
-    first = solve_reflectance(problem, W, opts, cache=cache)
+    first = solve_reflectance(problem, opts, cache=cache, track_objective=False)
     assert not cache.state_valid
-    warm_opts = ReflectanceOptions(**{**opts.__dict__, "warm_state": True})
-    a = solve_reflectance(problem, W, warm_opts, z0=first.reflectance, cache=cache)
-    b = solve_reflectance(problem, W, warm_opts, z0=first.reflectance, cache=ReflectanceCache())
+    warm_opts = opts.replace(bregman_warm_state=True)
+    kw = {"z0": first.reflectance, "track_objective": False}
+    a = solve_reflectance(problem, warm_opts, cache=cache, **kw)
+    b = solve_reflectance(problem, warm_opts, cache=ReflectanceCache(), **kw)
     torch.testing.assert_close(a.reflectance, b.reflectance, rtol=0, atol=0)
     assert cache.state_valid  # a warm_state solve stores its last state
 
@@ -306,16 +303,15 @@ def test_a_warm_solve_starts_at_the_penalty_its_state_was_written_at(monkeypatch
     from skimage import data
 
     from torchiid.model import decompose
-    from torchiid.params import Parameters
     from torchiid.stages import reflectance as stage
 
     params = Parameters.preset("converged")
-    base = params.theta * params.value_scale
+    base = params.reflectance.theta * params.reflectance.value_scale
     calls = []
     real = stage.split_bregman
 
     def spy(*args, **kw):
-        assert kw["theta_range"] == (base * params.bregman_theta_floor, base)
+        assert kw["theta_range"] == (base * params.reflectance.bregman_theta_floor, base)
         res = real(*args, **kw)
         calls.append((kw["theta"], res.theta))
         return res

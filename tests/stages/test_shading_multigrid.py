@@ -1,5 +1,5 @@
-"""solve_shading with the multigrid preconditioners: same minimiser, far fewer
-iterations, hierarchy reused across alternations."""
+"""solve_shading with the multigrid preconditioners: same minimiser, far fewer iterations,
+hierarchy reused across alternations."""
 
 import pytest
 import torch
@@ -7,13 +7,15 @@ import torch.nn.functional as F
 from skimage import data
 
 from torchiid.io import srgb_to_linear
-from torchiid.stages import (
-    ShadingOptions,
-    ShadingProblem,
-    ShadingSystemCache,
-    ShadingWeights,
-    solve_shading,
-)
+from torchiid.params import ShadingParameters
+from torchiid.stages import ShadingProblem, ShadingSystemCache, solve_shading
+
+#: the paper's weights without S_c (S_p, S_m: absent without similarities, S_l), without the
+#: pixel confidence or the colour-edge cut, the paper's matting base
+WEIGHTS = ShadingParameters(
+    use_sc=False, lambda_m=0.02, lambda_s=0.0, t_e=0.0, dark_level=0.0, clip_level=0.0,
+    base_mix=1.0,
+)  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -24,14 +26,14 @@ def photo():
 
 @pytest.mark.parametrize("kind", ["multigrid", "amg"])
 def test_multigrid_reaches_the_tolerance_in_few_iterations(photo, kind):
-    weights = ShadingWeights(lambda_c=0.0)  # S_p, S_m (absent: no similarity), S_l
     problem = ShadingProblem(photo)
-    tight = ShadingOptions(tol=1e-10, max_iter=20000, levels=1, warn=False)
-    ref = solve_shading(problem, weights, tight)
+    tight = WEIGHTS.replace(cg_tol=1e-10, cg_max_iter=20000, coarse_levels=1)
+    ref = solve_shading(problem, tight, warn=False)
     assert ref.diagnostics.converged
-    opts = ShadingOptions(tol=1e-6, max_iter=200, preconditioner=kind, warn=False)
-    jac = solve_shading(problem, weights, opts.replace(preconditioner="jacobi", levels=1))
-    out = solve_shading(problem, weights, opts)
+    opts = WEIGHTS.replace(cg_tol=1e-6, cg_max_iter=200, shading_preconditioner=kind)
+    jacobi = opts.replace(shading_preconditioner="jacobi", coarse_levels=1)
+    jac = solve_shading(problem, jacobi, warn=False)
+    out = solve_shading(problem, opts, warn=False)
     assert out.diagnostics.converged and out.diagnostics.iterations <= 40
     assert (
         out.diagnostics.iterations * 4 < jac.diagnostics.iterations or not jac.diagnostics.converged
@@ -41,15 +43,14 @@ def test_multigrid_reaches_the_tolerance_in_few_iterations(photo, kind):
 
 
 def test_hierarchy_is_reused_while_it_keeps_its_iteration_count(photo):
-    weights = ShadingWeights(lambda_c=0.0)
-    opts = ShadingOptions(tol=1e-5, max_iter=200, preconditioner="multigrid", warn=False)
+    opts = WEIGHTS.replace(cg_tol=1e-5, cg_max_iter=200, shading_preconditioner="multigrid")
     cache = ShadingSystemCache()
-    first = solve_shading(ShadingProblem(photo), weights, opts, cache=cache)
+    first = solve_shading(ShadingProblem(photo), opts, cache=cache, warn=False)
     built = cache.preconditioner
     assert built is not None and cache.fresh_iterations == first.diagnostics.iterations
     assert "preconditioner" in first.diagnostics.times
     # the next alternation's weights on the same base: the hierarchy is reused
-    second = solve_shading(ShadingProblem(photo), weights.step(1.2), opts, cache=cache)
+    second = solve_shading(ShadingProblem(photo), opts.step(1.2), cache=cache, warn=False)
     assert second.diagnostics.converged and cache.preconditioner is built
     assert "preconditioner" not in second.diagnostics.times
     # a system that drifted far (here: another base image): the reused hierarchy misses the
@@ -57,7 +58,7 @@ def test_hierarchy_is_reused_while_it_keeps_its_iteration_count(photo):
     # it and goes on, and still converges
     fresh = cache.fresh_iterations
     base = photo / photo.mean(1, keepdim=True).clamp_min(1e-3)
-    third = solve_shading(ShadingProblem(photo, base_image=base), weights, opts, cache=cache)
+    third = solve_shading(ShadingProblem(photo, base_image=base), opts, cache=cache, warn=False)
     assert third.diagnostics.converged and third.diagnostics.iterations > 2 * fresh + 5
     assert "preconditioner" in third.diagnostics.times
     assert cache.preconditioner is not None and cache.preconditioner is not built

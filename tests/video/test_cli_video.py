@@ -297,3 +297,19 @@ def test_frames_helpers_keep_sizes(seq):
     names = frame_file_names("frame-000001", save_npy=True)
     assert "frame-000001-reflectance.npy" in names and not any("params" in n for n in names)
     assert torch.is_tensor(seq.images)
+
+
+def test_a_folder_of_another_version_with_the_same_settings_resumes(tmp_path, monkeypatch):
+    import torchiid
+    from torchiid.commands.video import PARAMS_NAME, _check_same_settings, _params_json
+    from torchiid.core.exceptions import TorchiidError
+    from torchiid.params import Parameters
+    from torchiid.video import VideoOptions
+
+    params, options = Parameters().replace(iterations=1), VideoOptions()
+    monkeypatch.setattr(torchiid, "__version__", "0.9.0")
+    (tmp_path / PARAMS_NAME).write_text(_params_json(params, options))
+    monkeypatch.undo()
+    _check_same_settings(tmp_path, params, options)  # the version is no setting
+    with pytest.raises(TorchiidError, match="iterations 1 -> 2"):
+        _check_same_settings(tmp_path, params.replace(iterations=2), options)

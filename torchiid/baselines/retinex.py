@@ -235,7 +235,7 @@ def retinex_decomposition(
         image, mask, threshold_gray=threshold_gray, threshold_color=threshold_color
     ).shading
     layers = full_resolution_layers(
-        image, shading.clamp_min(params.shading_floor), None, mask, params
+        image, shading.clamp_min(params.reflectance.shading_floor), None, mask, params
     )
     return Decomposition(
         reflectance=layers.reflectance,

@@ -137,7 +137,9 @@ def params_hash(settings: RunSettings) -> str:
     last digits between devices and thread counts).
     """
     what = {
-        "params": json.loads(settings.params.to_json()),
+        # the parameters alone, not the version that wrote them: a new version that computes
+        # the same files keeps the collection's hashes
+        "params": settings.params.to_dict(),
         "method": settings.method,
         "linear": settings.linear,
         "save_npy": settings.save_npy,
@@ -358,7 +360,8 @@ def _write_outputs(
     mask = None if result.mask is None else result.mask[0].cpu()
     confidence = None
     if settings.save_confidence:
-        confidence = pixel_confidence(image[None], params.dark_level, params.clip_level)[0]
+        sh = params.shading
+        confidence = pixel_confidence(image[None], sh.dark_level, sh.clip_level)[0]
         if mask is not None:
             confidence = confidence * mask
     if settings.method == "semantic":
@@ -373,7 +376,7 @@ def _write_outputs(
         "method": settings.method,
         "working_size": list(reversed(result.working_size)) if result.working_size else None,
         "exif_orientation": getattr(loaded, "orientation", 1),
-        "albedo_quantile": params.albedo_quantile,
+        "albedo_quantile": params.output.albedo_quantile,
         "albedo_excess": float(result.albedo_excess[0]),
         "seconds": round(seconds, 3),
         "converged": result.converged,
@@ -415,7 +418,7 @@ def _write_outputs(
             for name, attr in named.items():
                 x = getattr(layers, attr)[0].cpu()
                 if name in ("sigma", "S"):
-                    x = x / image_quantile(x[None], params.view_quantile).clamp_min(1e-12)[0]
+                    x = x / image_quantile(x[None], params.output.view_quantile).clamp_min(1e-12)[0]
                 tx.write(f"{stem}-iter{k}-{name}.png", lambda p, x=x: save_image(p, x, "srgb8"))
 
 

@@ -195,7 +195,8 @@ def _check_same_settings(out: Path, params: Parameters, options: VideoOptions) -
         ) from None
     new = json.loads(_params_json(params, options))
     a, b = _flatten(old), _flatten(new)
-    changed = sorted(k for k in a.keys() | b.keys() if a.get(k, None) != b.get(k, None))
+    same = {"params.torchiid_version"}  # the version that wrote the file, not a setting
+    changed = sorted(k for k in (a.keys() | b.keys()) - same if a.get(k, None) != b.get(k, None))
     if changed:
         shown = ", ".join(f"{k} {a.get(k)!r} -> {b.get(k)!r}" for k in changed[:3])
         more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
@@ -308,7 +309,7 @@ def run_decompose_video(args: argparse.Namespace) -> int:
                     "motion_px": round(frame.motion, 3),
                     "features_reused": frame.features_reused,
                     "scale": frame.scale,
-                    "albedo_quantile": params.albedo_quantile,
+                    "albedo_quantile": params.output.albedo_quantile,
                     "albedo_excess": float(d.albedo_excess[0]),
                     "seconds": round(seconds, 3),
                     "times": {k: round(v, 4) for k, v in frame.times.items()},

@@ -112,32 +112,33 @@ def semantic_features(image: torch.Tensor, params: Parameters) -> SemanticFeatur
     b, _, h, w = image.shape
     centers = feats = sim = gpca = segs = mid = None
     # Stage 0 computes what the active priors need (the weights carry the switches)
-    shading_w, refl_w = params.shading_weights(), params.reflectance_weights()
-    need_sc = shading_w.lambda_c > 0
-    need_sim = shading_w.lambda_m > 0
-    need_gpca = refl_w.gamma_m > 0
+    shading_w, refl_w = params.shading.weights(), params.reflectance.weights()
+    need_sc = shading_w["S_c"] > 0
+    need_sim = shading_w["S_m"] > 0
+    need_gpca = refl_w["B"] > 0
+    f = params.features
     need_g = need_sim or need_gpca
     if need_sc:
         t0 = time.perf_counter()
-        grid = patch_grid(h, w, params.patch_size, params.patch_stride)
+        grid = patch_grid(h, w, f.patch_size, f.patch_stride)
         centers = grid.centers.to(image.device)
-        if params.lle_features == "cnn":
+        if f.lle_features == "cnn":
             feats = patch_features(
                 image,
-                mode=params.feature_mode,
-                backend=params.feature_backend,
-                size=params.patch_size,
-                stride=params.patch_stride,
+                mode=f.feature_mode,
+                backend=f.feature_backend,
+                size=f.patch_size,
+                stride=f.patch_stride,
             ).features
         else:
             feats = patch_mean_rgb(image, grid.boxes)
         times["patch features"] = time.perf_counter() - t0
     pool = seg_result = None
-    if refl_w.gamma_g > 0:
+    if refl_w["C"] > 0:
         # the segments' C++ segmentation runs in a thread, overlapping the proposals
         t0 = time.perf_counter()
         pool = ThreadPoolExecutor(max_workers=1) if need_g else None
-        seg_result = start_felzenszwalb_segments(image, scale=params.segment_scale, executor=pool)
+        seg_result = start_felzenszwalb_segments(image, scale=f.segment_scale, executor=pool)
         times["segments"] = time.perf_counter() - t0
     try:
         if need_g:
@@ -149,7 +150,7 @@ def semantic_features(image: torch.Tensor, params: Parameters) -> SemanticFeatur
             if need_sim:
                 sim = mid.similarity(shading_stencil(h, w, device=image.device))
             if need_gpca:
-                gpca = _pca_features(mid, params.proposal_pca_dim)
+                gpca = _pca_features(mid, f.proposal_pca_dim)
             times["mid-level g"] = time.perf_counter() - t0
         if seg_result is not None:
             t0 = time.perf_counter()

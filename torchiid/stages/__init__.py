@@ -1,14 +1,15 @@
-"""The two stages of the decomposition (paper §3.2-3.3) and their configuration objects."""
+"""The two stages of the decomposition (paper §3.2-3.3).
 
-from torchiid.stages.config import (
-    ReflectanceOptions,
-    ReflectanceProblem,
-    ReflectanceWeights,
-    ShadingOptions,
-    ShadingProblem,
-    ShadingWeights,
-    TemporalPrior,
-)
+Each stage takes its problem (the tensors: :class:`ShadingProblem`, :class:`ReflectanceProblem`)
+and its parameter group (:class:`~torchiid.params.ShadingParameters`,
+:class:`~torchiid.params.ReflectanceParameters`, e.g. ``params.alternation(k)``). The 0.x
+configuration objects ``ShadingWeights``, ``ShadingOptions``, ``ReflectanceWeights`` and
+``ReflectanceOptions`` are deprecated aliases (reading them warns).
+"""
+
+from typing import Any
+
+from torchiid.stages.config import ReflectanceProblem, ShadingProblem, TemporalPrior
 from torchiid.stages.reflectance import (
     ReflectanceCache,
     ReflectanceResult,
@@ -28,12 +29,8 @@ from torchiid.stages.shading import (
 )
 
 __all__ = [
-    "ReflectanceOptions",
     "ReflectanceProblem",
-    "ReflectanceWeights",
-    "ShadingOptions",
     "ShadingProblem",
-    "ShadingWeights",
     "TemporalPrior",
     "ReflectanceCache",
     "ReflectanceResult",
@@ -49,3 +46,9 @@ __all__ = [
     "build_shading_system",
     "solve_shading",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    from torchiid.params import legacy
+
+    return legacy.module_getattr(__name__, name)

@@ -333,7 +333,7 @@ class VideoDecomposer:
         self.shading_white = None
 
     def _working(self, image: torch.Tensor) -> tuple[int, int]:
-        return working_size(image.shape[-2], image.shape[-1], self.params.max_side)
+        return working_size(image.shape[-2], image.shape[-1], self.params.output.max_side)
 
     def _flow_size(self, image: torch.Tensor) -> tuple[int, int]:
         return working_size(image.shape[-2], image.shape[-1], self.options.flow_max_side)
@@ -520,7 +520,7 @@ class VideoDecomposer:
         self, img: torch.Tensor, target: torch.Tensor, trusted: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """``(R0, S0)`` at the working resolution from the warped previous reflectance."""
-        floor = self.params.shading_floor
+        floor = self.params.reflectance.shading_floor
         s_est = img.sum(1, keepdim=True) / target.sum(1, keepdim=True).clamp_min(floor)
         known = trusted & (target.sum(1, keepdim=True) > 1e-3) & (img.sum(1, keepdim=True) > 0)
         if not bool(known.any()):

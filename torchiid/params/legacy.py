@@ -1,0 +1,308 @@
+"""The stages' configuration objects of torchiid 0.x, deprecated for one minor version.
+
+``ShadingWeights`` / ``ShadingOptions`` and ``ReflectanceWeights`` / ``ReflectanceOptions``
+split each stage's configuration in two and repeated :class:`~torchiid.params.Parameters`;
+the stages now take one parameter group (:class:`~torchiid.params.ShadingParameters`,
+:class:`~torchiid.params.ReflectanceParameters`). Reading these names from
+:mod:`torchiid.stages` or :mod:`torchiid.stages.config`, the ``Parameters`` methods that built
+them and the stage calls that take them warn with a ``DeprecationWarning`` naming the
+replacement, and work as before.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+from torchiid.core.exceptions import ParameterError
+from torchiid.params.reflectance import ReflectanceParameters
+from torchiid.params.shading import ShadingParameters
+
+__all__ = [
+    "ShadingWeights",
+    "ShadingOptions",
+    "ReflectanceWeights",
+    "ReflectanceOptions",
+    "REPLACEMENTS",
+    "deprecated",
+    "module_getattr",
+    "shading_arguments",
+    "reflectance_arguments",
+]
+
+#: each deprecated name -> what replaces it
+REPLACEMENTS = {
+    "ShadingWeights": "torchiid.params.ShadingParameters (lambda_* and use_*; .weights())",
+    "ShadingOptions": "torchiid.params.ShadingParameters",
+    "ReflectanceWeights": "torchiid.params.ReflectanceParameters (gamma_* and use_*; .weights())",
+    "ReflectanceOptions": "torchiid.params.ReflectanceParameters",
+}
+
+
+def deprecated(old: str, new: str, stacklevel: int = 3) -> None:
+    """Warn that ``old`` is deprecated and ``new`` replaces it."""
+    warnings.warn(f"{old} is deprecated; use {new}", DeprecationWarning, stacklevel=stacklevel)
+
+
+def module_getattr(module: str, name: str) -> Any:
+    """A deprecated class read from ``module`` (a warning), or ``AttributeError``."""
+    if name not in REPLACEMENTS:
+        raise AttributeError(f"module {module!r} has no attribute {name!r}")
+    deprecated(f"{module}.{name}", REPLACEMENTS[name], stacklevel=4)
+    return globals()[name]
+
+
+def _nonnegative(obj: object) -> None:
+    for f in dataclasses.fields(obj):  # type: ignore[arg-type]
+        value = getattr(obj, f.name)
+        if not value >= 0:
+            raise ParameterError(f"{type(obj).__name__}.{f.name} must be >= 0, got {value}")
+
+
+def _check_tau(tau: float) -> None:
+    if not tau > 0:
+        raise ParameterError(f"the schedule's tau must be > 0, got {tau}")
+
+
+@dataclass(frozen=True)
+class ShadingWeights:
+    """Deprecated: the weights of the shading priors (Eq. 1); 0 switches a prior off."""
+
+    lambda_c: float = 0.02
+    lambda_p: float = 0.02
+    lambda_m: float = 0.02
+    lambda_l: float = 2.0
+    lambda_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        _nonnegative(self)
+
+    @property
+    def active(self) -> bool:
+        """Whether any prior is on."""
+        return any(getattr(self, f.name) > 0 for f in dataclasses.fields(self))
+
+    def step(self, tau: float) -> ShadingWeights:
+        """The next alternation's weights (§3.4): global and mid-level ``× τ``, local ``/ τ``."""
+        _check_tau(tau)
+        return ShadingWeights(
+            self.lambda_c * tau,
+            self.lambda_p * tau,
+            self.lambda_m * tau,
+            self.lambda_l / tau,
+            self.lambda_s / tau,
+        )
+
+    def as_dict(self) -> dict[str, float]:
+        """The weights as :meth:`ShadingParameters.weights` gives them."""
+        return {
+            "S_c": self.lambda_c,
+            "S_p": self.lambda_p,
+            "S_m": self.lambda_m,
+            "S_l": self.lambda_l,
+            "S_s": self.lambda_s,
+        }
+
+
+#: ShadingOptions field -> ShadingParameters field, where the names differ
+_SHADING_NAMES = {
+    "tol": "cg_tol",
+    "max_iter": "cg_max_iter",
+    "warm_max_iter": "warm_cg_max_iter",
+    "levels": "coarse_levels",
+    "preconditioner": "shading_preconditioner",
+}
+
+
+@dataclass(frozen=True)
+class ShadingOptions:
+    """Deprecated: the constants of the shading priors and the settings of their PCG solve."""
+
+    t_c: float = 1e-4
+    t_b: float = 0.05
+    t_i: float = 0.0
+    t_e: float = 0.0
+    t_d: float = 0.0
+    t_h: float = 0.0
+    t_m: float = 0.05
+    matting_eps: float = 1e-5
+    dark_eps: float = 1e-4
+    dark_level: float = 0.0
+    clip_level: float = 0.0
+    base_sigma: float = 1.0
+    base_mix: float = 1.0
+    lle_k: int = 10
+    lle_reg: float = 1e-3
+    lle_neighbours: str = "knn"
+    seed: int = 0
+    anchor: float = 1e-8
+    tol: float = 1e-4
+    max_iter: int = 300
+    warm_max_iter: int = 0
+    levels: int = 5
+    warn: bool = True
+    preconditioner: str = "jacobi"
+
+    def __post_init__(self) -> None:
+        self.to_parameters()  # the group's checks
+
+    def replace(self, **changes: object) -> ShadingOptions:
+        """A copy with some options changed."""
+        return dataclasses.replace(self, **changes)
+
+    def to_parameters(self) -> ShadingParameters:
+        """The same settings as a :class:`ShadingParameters` (without ``seed`` and ``warn``)."""
+        values = dataclasses.asdict(self)
+        del values["seed"], values["warn"]
+        return ShadingParameters(**{_SHADING_NAMES.get(k, k): v for k, v in values.items()})
+
+    @classmethod
+    def from_parameters(cls, group: ShadingParameters, seed: int, warn: bool) -> ShadingOptions:
+        """The options of ``group``."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        back = {v: k for k, v in _SHADING_NAMES.items()}
+        values = {back.get(k, k): v for k, v in dataclasses.asdict(group).items()}
+        return cls(**{k: v for k, v in values.items() if k in names}, seed=seed, warn=warn)
+
+
+@dataclass(frozen=True)
+class ReflectanceWeights:
+    """Deprecated: the weights of the reflectance energy (Eq. 12); 0 switches a prior off."""
+
+    gamma_l: float = 20.0
+    gamma_m: float = 20.0
+    gamma_g: float = 2.0
+    gamma_a: float = 1.0
+
+    def __post_init__(self) -> None:
+        _nonnegative(self)
+
+    @property
+    def active(self) -> bool:
+        """Whether any sparsity prior is on."""
+        return self.gamma_l > 0 or self.gamma_m > 0 or self.gamma_g > 0
+
+    def step(self, tau: float) -> ReflectanceWeights:
+        """The next alternation's weights (§3.4): mid-level, global, data ``× τ``, local ``/ τ``."""
+        _check_tau(tau)
+        return ReflectanceWeights(
+            self.gamma_l / tau, self.gamma_m * tau, self.gamma_g * tau, self.gamma_a * tau
+        )
+
+    def as_dict(self) -> dict[str, float]:
+        """The sparsity weights as :meth:`ReflectanceParameters.weights` gives them."""
+        return {"A": self.gamma_l, "B": self.gamma_m, "C": self.gamma_g}
+
+
+#: ReflectanceOptions field -> ReflectanceParameters field, where the names differ
+_REFLECTANCE_NAMES = {
+    "tol": "bregman_tol",
+    "max_outer": "bregman_iter",
+    "cg_tol": "bregman_cg_tol",
+    "cg_max_iter": "bregman_cg_iter",
+    "warm_state": "bregman_warm_state",
+    "gap_tol": "bregman_gap_tol",
+    "theta_floor": "bregman_theta_floor",
+    "eps": "shading_floor",
+}
+
+
+@dataclass(frozen=True)
+class ReflectanceOptions:
+    """Deprecated: the constants of the reflectance priors and their Split-Bregman settings."""
+
+    theta: float = 40.0
+    value_scale: float = 255.0
+    t: float = 0.05
+    t_g: float = 0.0
+    window: int = 11
+    colour_weights: str = "bi"
+    luminance_weight: float | None = None
+    tol: float = 1e-3
+    max_outer: int = 3
+    cg_tol: float = 1e-3
+    cg_max_iter: int = 5
+    merge_stencil_terms: bool = True
+    warm_state: bool = False
+    track_objective: bool = True
+    eps: float = 1e-4
+    gap_tol: float = 0.0
+    theta_floor: float = 1.0
+
+    def __post_init__(self) -> None:
+        self.to_parameters()  # the group's checks
+
+    def replace(self, **changes: object) -> ReflectanceOptions:
+        """A copy with some options changed."""
+        return dataclasses.replace(self, **changes)
+
+    def to_parameters(self) -> ReflectanceParameters:
+        """The same settings as a group (without ``merge_stencil_terms``, ``track_objective``)."""
+        values = dataclasses.asdict(self)
+        del values["merge_stencil_terms"], values["track_objective"]
+        return ReflectanceParameters(**{_REFLECTANCE_NAMES.get(k, k): v for k, v in values.items()})
+
+    @classmethod
+    def from_parameters(
+        cls, group: ReflectanceParameters, track_objective: bool
+    ) -> ReflectanceOptions:
+        """The options of ``group``."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        back = {v: k for k, v in _REFLECTANCE_NAMES.items()}
+        values = {back.get(k, k): v for k, v in dataclasses.asdict(group).items()}
+        kept = {k: v for k, v in values.items() if k in names}
+        return cls(**kept, track_objective=track_objective)
+
+
+def shading_arguments(
+    function: str, shading: object, options: object
+) -> tuple[ShadingParameters, dict[str, float], dict[str, Any]]:
+    """``(group, weights, settings)`` of a shading stage call, old form or new.
+
+    The new form is ``(ShadingParameters, None)``; the old one ``(ShadingWeights,
+    ShadingOptions)`` warns and gives its ``seed`` and ``warn`` in ``settings``.
+    """
+    if isinstance(shading, ShadingParameters) and options is None:
+        return shading, shading.weights(), {}
+    if isinstance(shading, ShadingWeights) and isinstance(options, ShadingOptions):
+        deprecated(
+            f"{function}(problem, ShadingWeights, ShadingOptions)",
+            f"{function}(problem, params.shading) with a torchiid.params.ShadingParameters",
+            stacklevel=4,
+        )
+        settings = {"seed": options.seed, "warn": options.warn}
+        return options.to_parameters(), shading.as_dict(), settings
+    raise ParameterError(
+        f"{function} takes a torchiid.params.ShadingParameters (params.shading), "
+        f"got {type(shading).__name__}"
+    )
+
+
+def reflectance_arguments(
+    function: str, reflectance: object, options: object
+) -> tuple[ReflectanceParameters, dict[str, float], dict[str, Any]]:
+    """``(group, weights, settings)`` of a reflectance stage call, old form or new.
+
+    The new form is ``(ReflectanceParameters, None)``; the old one ``(ReflectanceWeights,
+    ReflectanceOptions)`` warns and gives ``merge`` and ``track_objective`` in ``settings``.
+    """
+    if isinstance(reflectance, ReflectanceParameters) and options is None:
+        return reflectance, reflectance.weights(), {}
+    if isinstance(reflectance, ReflectanceWeights) and isinstance(options, ReflectanceOptions):
+        deprecated(
+            f"{function}(problem, ReflectanceWeights, ReflectanceOptions)",
+            f"{function}(problem, params.reflectance) with a torchiid.params.ReflectanceParameters",
+            stacklevel=4,
+        )
+        group = options.to_parameters().replace(gamma_a=reflectance.gamma_a)
+        settings = {
+            "merge": options.merge_stencil_terms,
+            "track_objective": options.track_objective,
+        }
+        return group, reflectance.as_dict(), settings
+    raise ParameterError(
+        f"{function} takes a torchiid.params.ReflectanceParameters (params.reflectance), "
+        f"got {type(reflectance).__name__}"
+    )
