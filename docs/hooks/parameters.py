@@ -28,7 +28,10 @@ def _markdown(text: str) -> str:
     """The reStructuredText roles and literals of a docstring as Markdown, one line, table-safe."""
     text = re.sub(r":(?:func|class|meth|mod|data|attr):`~?([\w.]+)`", _last_part, text)
     text = text.replace("``", "`")
-    return " ".join(text.split()).replace("|", "\\|")
+    # outside code spans, < and > are text (`1 - <g_i, g_j>`), not HTML tags
+    parts = text.split("`")
+    parts[::2] = [p.replace("<", "&lt;").replace(">", "&gt;") for p in parts[::2]]
+    return " ".join("`".join(parts).split()).replace("|", "\\|")
 
 
 def _last_part(match: re.Match[str]) -> str:
