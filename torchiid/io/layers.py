@@ -74,6 +74,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from torchiid._version import __version__
 from torchiid.core.colour import srgb8_encode_lut
 from torchiid.core.exceptions import TorchiidError
 from torchiid.io.image import encode_codes, save_encoded, save_image
@@ -512,6 +513,7 @@ def write_layers(
         if "confidence.png" in encoded:
             png("confidence.png")
     record = {
+        "torchiid_version": __version__,  # so a reader can interpret or migrate the files
         "size": [big_w, big_h],
         "shading_white": white,
         "convention": (
