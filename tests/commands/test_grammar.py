@@ -60,6 +60,10 @@ def test_files_record_the_version_that_wrote_them(photo, tmp_path):
     info = json.loads((out / "cat-info.json").read_text())
     line = json.loads((out / "manifest.jsonl").read_text().splitlines()[-1])
     assert info["torchiid_version"] == line["torchiid_version"] == torchiid.__version__
+    argv = ["decompose", str(photo / "cat.png"), "--method", "retinex", "--no-progress"]
+    assert main([*argv, "-o", str(tmp_path / "retinex")]) == 0
+    params = json.loads((tmp_path / "retinex" / "cat-params.json").read_text())
+    assert params["torchiid_version"] == torchiid.__version__
 
 
 def test_the_version_alone_does_not_change_the_parameters_hash(tmp_path, monkeypatch):

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from torchiid._version import __version__
 from torchiid.baselines.retinex import retinex_decomposition
 from torchiid.core.exceptions import (
     ConvergenceWarning,
@@ -100,7 +101,9 @@ class RunSettings:
         linear: 8/16-bit files hold linear values.
         device: ``"cpu"``, ``"cuda"`` or ``"auto"`` (resolved in each worker).
         overwrite: replace existing output files.
-        save_npy, save_confidence, save_stage1, save_iterations: the optional files.
+        save_npy, save_confidence, save_stage1, save_iterations: the optional files
+            (``save_stage1``: Stage 1's ``-rho.exr``; its ``-sigma.exr`` is always written by
+            the semantic method, for ``torchiid edit --from``).
         mask: a mask file for every image, or ``None``.
         mask_sha256: its SHA-256 (part of :attr:`params_hash`).
         threads: torch threads in each worker process (``None``: leave them as they are).
@@ -371,7 +374,8 @@ def _write_outputs(
     if settings.method == "semantic":
         params_json = params.to_json()
     else:
-        params_json = json.dumps({"method": "color_retinex", **RETINEX_DEFAULTS}, indent=2) + "\n"
+        retinex = {"torchiid_version": __version__, "method": "color_retinex", **RETINEX_DEFAULTS}
+        params_json = json.dumps(retinex, indent=2) + "\n"
     white = float(result.shading_white[0])
     sigma = settings.method == "semantic" and result.sigma is not None
     rho = sigma and settings.save_stage1

@@ -17,13 +17,16 @@ file                                      what it is
 ``photo-shading.exr``                     ``S``, 32-bit float **linear** OpenEXR (one channel
                                           ``Y``), unclipped, values may exceed 1
 ``photo-info.json``                       sizes, ``shading_white``, ``albedo_excess``, the
-                                          scale convention and what each file is
+                                          scale convention, what each file is and the
+                                          ``torchiid_version`` that wrote them
 ``photo-params.json``                     every parameter used (the format ``--params`` reads)
 ``photo-reflectance.npy`` / ``-shading``  with ``save_npy``: float32 linear ``(H, W, 3)`` and
                                           ``(H, W)``, ``R · S == I`` to float precision
 ``photo-confidence.png``                  with ``save_confidence``: 8-bit gray, 255 where the
                                           pixel's colour is trusted, 0 where it is dark or
                                           clipped (no information, shading continued smoothly)
+``photo-sigma.exr``                       Stage 1's last shading ``σ``, float32 linear OpenEXR
+                                          (``decompose`` adds it to the set; ``ρ = I / σ``)
 ========================================  ====================================================
 
 OpenEXR rather than a float TIFF for the shading: it is the interchange format for linear HDR
