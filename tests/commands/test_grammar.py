@@ -23,7 +23,7 @@ from torchiid.core.exceptions import TorchiidError
 
 ROOT = Path(__file__).resolve().parents[2]
 FAST = ["--iterations", "1", "--no-progress"]
-HEAVY = ("torch", "numba", "cv2", "kornia", "skimage", "onnxruntime", "av")
+HEAVY = ("torch", "numba", "cv2", "kornia", "skimage", "onnxruntime", "av", "numpy", "scipy", "PIL")
 LONG = [c for c in COMMANDS if c.runs_long]
 
 
