@@ -290,9 +290,9 @@ def test_ctrl_c_inside_a_compiled_kernel_is_reported_as_an_interruption(
     err = capsys.readouterr().err
     assert "torchiid: interrupted" in err
     assert "internal error" not in err
-    # the same wrapper around an ordinary failure is still an internal error, status 2
+    # the same wrapper around an ordinary failure is still an internal error: failed, status 1
     monkeypatch.setattr(onnx_backend, "export_to_dir", _raise_from(ValueError("bad")))
-    assert main(["export-onnx", "-o", str(tmp_path)]) == 2
+    assert main(["export-onnx", "-o", str(tmp_path)]) == 1
     assert "internal error (SystemError" in capsys.readouterr().err
 
 

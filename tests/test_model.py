@@ -301,20 +301,6 @@ def test_converged_preset_converges_and_warns_only_when_a_cap_is_hit():
         assert not decompose(image, Parameters().replace(iterations=1)).converged
 
 
-def test_cli_note_tells_a_breakdown_from_a_cap():
-    from torchiid.collection.job import _capped_note
-    from torchiid.model import SolveReport
-
-    ok = SolveReport("shading", 1, 12, 0, 5e-5, 1e-4, 3000, True)
-    capped = SolveReport("reflectance", 1, 400, 2000, 2e-4, 5e-5, 400, False)
-    broke = SolveReport("shading", 5, 20, 0, 1.3e-3, 1e-4, 3000, False)
-    assert _capped_note("a.png", "a", [ok]) is None
-    assert "caps them on purpose" in _capped_note("a.png", "a", [capped])
-    assert "raise cg_max_iter" in _capped_note("a.png", "a", [ok, capped], converge=True)
-    note = _capped_note("a.png", "a", [capped, broke], converge=True)
-    assert "no further progress" in note and "--verbose" in note and "2 of 2" in note
-
-
 def test_print_preset_keeps_the_text_of_a_photographed_page_in_the_reflectance():
     # scikit-image's page: dark print on paper, unevenly lit. Print and paper have one
     # chromaticity, so the default's S_l ties them and the text goes to the shading (measured:

@@ -1,269 +1,195 @@
 """The ``torchiid`` command line: a thin layer over the library.
 
-Subcommands: ``decompose`` (the method, or colour Retinex), ``decompose-video`` (frame
-sequences, temporally consistent), ``features`` (look at the Stage 0
-features), ``export-onnx`` (write the ONNX backbone) and ``eval`` (metrics on datasets).
-Errors a user can cause end in a one-line ``torchiid: error: ...`` and a non-zero exit status:
-0 when everything was done, 1 when some inputs failed (the others were done), 2 for a usage or
-set-up error (nothing was processed) and 130 when interrupted (Ctrl-C, SIGINT or SIGTERM).
-An unexpected exception is reported in one line too; ``--verbose`` adds its traceback.
+Every command is a module of :mod:`torchiid.commands` named in :data:`COMMANDS`, with
+``add_arguments(parser)`` (the options; it imports nothing heavy) and ``run(args)`` (the
+work; it imports torch and the rest when it runs), so ``torchiid --help``, ``--version`` and
+``torchiid COMMAND --help`` start at once. The commands that run long share one set of run
+options: ``--no-progress``, ``--device``, ``--threads N``, ``-q/--quiet`` and
+``-v/--verbose`` (``-q`` and ``-v`` also before the command: ``torchiid -v decompose ...``).
+
+Exit status, the same for every command:
+
+* 0: everything was done (for ``decompose``: written now, or by an earlier run).
+* 1: something failed: some inputs (each reported in its line; the others were done), or an
+  internal error (reported in one line; ``-v`` adds its traceback).
+* 2: usage or set-up error, found before any work: options, parameters, missing or
+  unreadable files, an output folder that cannot be written.
+* 130: interrupted (Ctrl-C, SIGINT or SIGTERM); what was finished before stays complete.
+
+Errors a user can cause end in one line, ``torchiid: error: ...``, never a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
+import os
 import signal
 import sys
 import threading
-import time
 from collections.abc import Sequence
-from pathlib import Path
+from dataclasses import dataclass
 
-from torchiid.commands.decompose import add_parameter_options
-from torchiid.core.exceptions import TorchiidError, caused_by_interrupt, one_line
+from torchiid._version import __version__
+from torchiid.commands.common import run_options, thread_environment, verbosity_options
 
-__all__ = ["main", "build_parser"]
+__all__ = ["COMMANDS", "Command", "build_parser", "main"]
 
 log = logging.getLogger("torchiid")
 
+EXIT_STATUS = """\
+exit status: 0 done; 1 failed (some inputs, each reported in one line, or an internal error);
+2 usage or set-up error (nothing was processed); 130 interrupted (Ctrl-C, SIGTERM)."""
 
-def _add_common_image_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--linear",
-        action="store_true",
-        help="8/16-bit input files hold linear values (default: sRGB-encoded)",
-    )
-    p.add_argument(
-        "--device",
-        default="auto",
-        choices=["auto", "cpu", "cuda"],
-        help="where to run (auto: CUDA when available)",
-    )
+
+@dataclass(frozen=True)
+class Command:
+    """One ``torchiid`` command.
+
+    Attributes:
+        name: the word on the command line.
+        module: its module in :mod:`torchiid.commands`, with ``add_arguments(parser)`` and
+            ``run(args) -> int`` (and optionally ``DESCRIPTION`` and ``EPILOG`` strings).
+        help: the one line ``torchiid --help`` shows.
+        runs_long: takes the run options (``--no-progress``, ``--device``, ``--threads``).
+    """
+
+    name: str
+    module: str
+    help: str
+    runs_long: bool = True
+
+
+#: the commands, in the order ``torchiid --help`` lists them
+COMMANDS: tuple[Command, ...] = (
+    Command("decompose", "decompose", "split photos into reflectance and shading"),
+    Command("decompose-video", "video", "decompose a video, its frames tied together"),
+    Command("edit", "edit", "edit a photo through its reflectance and shading"),
+    Command("eval", "eval", "score a method or saved results on a benchmark"),
+    Command("features", "features", "pictures of a photo's Stage 0 features"),
+    Command("export-onnx", "export_onnx", "export the feature extractor to ONNX", runs_long=False),
+)
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter):
+    """Descriptions and epilogs as written; option help in a column wide enough for the options."""
+
+    def __init__(self, prog: str) -> None:
+        super().__init__(prog, max_help_position=30)
+
+
+def _command_list() -> str:
+    """Every command with its one line (``torchiid --help``)."""
+    width = max(len(c.name) for c in COMMANDS) + 2
+    return "commands:\n" + "\n".join(f"  {c.name:<{width}}{c.help}" for c in COMMANDS)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``torchiid`` command."""
     parser = argparse.ArgumentParser(
         prog="torchiid",
-        description="Intrinsic image decomposition (I = R x S) with semantic hierarchical priors.",
+        usage="%(prog)s [-h] [--version] [-q | -v] COMMAND ...",
+        description="Intrinsic image decomposition (I = R x S) with semantic hierarchical priors."
+        f"\n\n{_command_list()}\n\n'torchiid COMMAND --help' describes each command.",
+        epilog=EXIT_STATUS,
+        formatter_class=_Formatter,
     )
-    parser.add_argument("-v", "--verbose", action="store_true", help="log details to stderr")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
-    d = sub.add_parser(
-        "decompose",
-        help="split photos into reflectance and shading",
-        description="Split photos into reflectance and shading.",
+    parser.add_argument("--version", action="version", version=f"torchiid {__version__}")
+    verbosity = parser.add_mutually_exclusive_group()
+    verbosity.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+    verbosity.add_argument("-v", "--verbose", action="store_true", help="print details")
+    sub = parser.add_subparsers(
+        dest="command", required=True, metavar="COMMAND", help=argparse.SUPPRESS, prog="torchiid"
     )
-    d.add_argument(
-        "inputs",
-        nargs="*",
-        help="image files, directories and glob patterns (quote them: 'photos/**/*.jpg')",
-    )
-    d.add_argument("-o", "--output", type=Path, required=True, help="output directory")
-    d.add_argument("-r", "--recursive", action="store_true", help="also take images in subfolders")
-    d.add_argument(
-        "--list",
-        action="append",
-        type=Path,
-        metavar="FILE",
-        help="a list of inputs: one path per line, or a CSV file with a 'path' and an optional "
-        "'mask' column; relative paths are relative to the list's folder (repeatable)",
-    )
-    d.add_argument(
-        "--method",
-        default="semantic",
-        choices=["semantic", "retinex"],
-        help="semantic: the paper's method (default); retinex: Grosse et al.'s "
-        "colour Retinex baseline",
-    )
-    add_parameter_options(d)
-    d.add_argument(
-        "--mask", type=Path, help="mask image (nonzero = inside); applies to every input"
-    )
-    d.add_argument(
-        "--save-confidence",
-        action="store_true",
-        help="also write <stem>-confidence.png (255: trusted colour, 0: dark or clipped pixel)",
-    )
-    d.add_argument(
-        "--save-stage1",
-        action="store_true",
-        help="also write the last Stage 1 layers <stem>-sigma.exr and <stem>-rho.exr (float, "
-        "linear), which `torchiid edit --from` needs for merge and the illumination edits",
-    )
-    d.add_argument(
-        "--save-npy",
-        action="store_true",
-        help="also write float32 linear .npy arrays of reflectance and shading",
-    )
-    d.add_argument(
-        "--save-iterations",
-        action="store_true",
-        help="write every iteration's sigma, rho, R, S (sRGB PNGs)",
-    )
-    d.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    d.add_argument(
-        "--retry-failed",
-        action="store_true",
-        help="also run the inputs the manifest records as failed (skipped otherwise)",
-    )
-    d.add_argument(
-        "--redo",
-        action="store_true",
-        help="ignore the manifest: run every input again (with --overwrite to replace files)",
-    )
-    d.add_argument(
-        "--workers",
-        type=int,
-        metavar="N",
-        help="run N worker processes on this machine, each with its share of the cores "
-        "(default: one image at a time in this process)",
-    )
-    d.add_argument(
-        "--threads",
-        type=int,
-        metavar="T",
-        help="torch threads per worker (default with --workers: cores / N)",
-    )
-    d.add_argument(
-        "--dask-scheduler",
-        metavar="ADDRESS",
-        help="send the images to the dask.distributed cluster of this scheduler "
-        "(e.g. tcp://10.0.0.1:8786); needs pip install 'torchiid[dask]'",
-    )
-    d.add_argument(
-        "--retries",
-        type=int,
-        default=1,
-        metavar="N",
-        help="times an image is tried again when its worker dies (--workers) or its task "
-        "raises (Dask retries=); default 1",
-    )
-    d.add_argument("--no-progress", action="store_true", help="no progress bar")
-    _add_common_image_options(d)
-
-    f = sub.add_parser(
-        "features",
-        help="write pictures of the Stage 0 semantic features",
-        description="Write the PCA image of g_i, proposal masks and the patch "
-        "grid of one photo, and print timings per step.",
-    )
-    f.add_argument("input", type=Path, help="an image file")
-    f.add_argument("-o", "--output", type=Path, required=True, help="output directory")
-    f.add_argument(
-        "--mode", default="shared", choices=["shared", "crop"], help="patch feature mode"
-    )
-    f.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    _add_common_image_options(f)
-
-    e = sub.add_parser(
-        "export-onnx",
-        help="export the EfficientNet-Lite0 feature extractor",
-        description="Export the CNN feature extractor to ONNX and record its "
-        "SHA-256 in the manifest.",
-    )
-    e.add_argument(
-        "-o",
-        "--output",
-        type=Path,
-        default=None,
-        help="where to write (default: the cache used by the library)",
-    )
-
-    from torchiid.commands.video import add_video_parser
-
-    add_video_parser(sub)
-    from torchiid.commands.eval import add_eval_parser
-
-    add_eval_parser(sub)
-    from torchiid.commands.edit import add_edit_parser
-
-    add_edit_parser(sub)
+    run_parent, verbosity_parent = run_options(), verbosity_options()
+    for command in COMMANDS:
+        module = _module(command.name)  # light: the options only
+        epilog = getattr(module, "EPILOG", None)
+        p = sub.add_parser(
+            command.name,
+            help=command.help,
+            description=getattr(module, "DESCRIPTION", command.help),
+            epilog=f"{epilog}\n\n{EXIT_STATUS}" if epilog else EXIT_STATUS,
+            parents=[run_parent if command.runs_long else verbosity_parent],
+            formatter_class=_Formatter,
+        )
+        module.add_arguments(p)
     return parser
-
-
-def _cmd_decompose(args: argparse.Namespace) -> int:
-    from torchiid.commands.decompose import run_decompose
-
-    return run_decompose(args)
-
-
-def _cmd_features(args: argparse.Namespace) -> int:
-    from torchiid.commands.features import run_features
-
-    return run_features(args)
-
-
-def _cmd_export(args: argparse.Namespace) -> int:
-    from torchiid.features.onnx_backend import ensure_onnx_model, export_to_dir
-
-    t0 = time.perf_counter()
-    path = export_to_dir(args.output) if args.output else ensure_onnx_model()
-    print(f"wrote {path} ({time.perf_counter() - t0:.1f} s)")
-    return 0
-
-
-def _cmd_decompose_video(args: argparse.Namespace) -> int:
-    from torchiid.commands.video import run_decompose_video
-
-    return run_decompose_video(args)
-
-
-def _cmd_eval(args: argparse.Namespace) -> int:
-    from torchiid.commands.eval import run_eval
-
-    return run_eval(args)
-
-
-def _cmd_edit(args: argparse.Namespace) -> int:
-    from torchiid.commands.edit import run_edit
-
-    return run_edit(args)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``torchiid`` console script; returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.quiet and args.verbose:
+        parser.error("-q/--quiet and -v/--verbose exclude each other")
+    if args.quiet:
+        args.no_progress = True
     logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING, format="torchiid: %(message)s"
+        level=logging.INFO if args.verbose else logging.ERROR if args.quiet else logging.WARNING,
+        format="torchiid: %(message)s",
     )
-    handlers = {
-        "decompose": _cmd_decompose,
-        "decompose-video": _cmd_decompose_video,
-        "features": _cmd_features,
-        "export-onnx": _cmd_export,
-        "eval": _cmd_eval,
-        "edit": _cmd_edit,
-    }
     main_thread = threading.current_thread() is threading.main_thread()
     if main_thread:
         # SIGTERM (kill, timeout, a closed session) cleans up like Ctrl-C
         previous = signal.signal(signal.SIGTERM, _interrupt)
+    threads = getattr(args, "threads", None)
+    environment = thread_environment(threads)  # before torch loads: its OpenMP pool size
+    torch_threads = None
     try:
-        return handlers[args.command](args)
-    except TorchiidError as exc:
-        print(f"torchiid: error: {one_line(str(exc))}", file=sys.stderr)
-        return 2
+        if threads is not None:
+            import torch
+
+            torch_threads = torch.get_num_threads()
+            torch.set_num_threads(threads)
+        return _module(args.command).run(args)
     except KeyboardInterrupt:
         print("torchiid: interrupted", file=sys.stderr)
         return 130
-    except Exception as exc:  # noqa: BLE001 - a one-line report, the traceback with -v
-        if caused_by_interrupt(exc):  # Ctrl-C inside a compiled kernel
-            print("torchiid: interrupted", file=sys.stderr)
-            return 130
-        print(
-            f"torchiid: error: internal error ({type(exc).__name__}: {one_line(str(exc))}); "
-            "rerun with --verbose for the traceback",
-            file=sys.stderr,
-        )
-        log.info("the error above came from here:", exc_info=exc)
-        return 2
+    except Exception as exc:  # noqa: BLE001 - one line; the traceback with -v
+        return _report(exc)
     finally:
+        if torch_threads is not None:  # main() called from Python keeps its own settings
+            import torch
+
+            torch.set_num_threads(torch_threads)
+        _restore(environment)
         if main_thread:
             signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+
+
+def _module(name: str):
+    """The module of command ``name``."""
+    command = next(c for c in COMMANDS if c.name == name)
+    return importlib.import_module(f"torchiid.commands.{command.module}")
+
+
+def _report(exc: Exception) -> int:
+    """Print an exception that ended a command in one line; returns the exit status."""
+    from torchiid.core.exceptions import TorchiidError, caused_by_interrupt, one_line
+
+    if isinstance(exc, TorchiidError):
+        print(f"torchiid: error: {one_line(str(exc))}", file=sys.stderr)
+        return 2
+    if caused_by_interrupt(exc):  # Ctrl-C inside a compiled kernel
+        print("torchiid: interrupted", file=sys.stderr)
+        return 130
+    print(
+        f"torchiid: error: internal error ({type(exc).__name__}: {one_line(str(exc))}); "
+        "rerun with --verbose for the traceback",
+        file=sys.stderr,
+    )
+    log.info("the error above came from here:", exc_info=exc)
+    return 1
+
+
+def _restore(environment: dict[str, str | None]) -> None:
+    for name, value in environment.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
 
 
 def _interrupt(signum: int, frame: object) -> None:

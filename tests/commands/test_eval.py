@@ -1,9 +1,5 @@
-import argparse
-import contextlib
 import csv
-import io
 import json
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -12,10 +8,11 @@ import numpy as np
 import pytest
 import torch
 
+import torchiid
 import torchiid.cli as cli
 import torchiid.model as model
 from torchiid.baselines.retinex import color_retinex
-from torchiid.commands.eval import add_eval_parser, run_eval
+from torchiid.commands.eval import run as run_eval
 from torchiid.core.exceptions import ShapeError, TorchiidError
 from torchiid.eval import (
     METRICS,
@@ -41,29 +38,15 @@ MIT_REAL = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "mit
 
 
 def _parse(argv):
-    parser = argparse.ArgumentParser(prog="torchiid")
-    add_eval_parser(parser.add_subparsers(dest="command"))
-    return parser.parse_args(["eval", *[str(a) for a in argv]])
+    return cli.build_parser().parse_args(["eval", *[str(a) for a in argv]])
 
 
 def _run(argv):
     return run_eval(_parse(argv))
 
 
-def _main(argv, capsys=None):
-    """``torchiid.cli.main`` if ``eval`` is wired there, else its equivalent."""
-    argv = ["eval", *[str(a) for a in argv]]
-    try:
-        with contextlib.redirect_stderr(io.StringIO()):
-            cli.build_parser().parse_args(argv)
-    except SystemExit:
-        args = _parse(argv[1:])
-        try:
-            return run_eval(args)
-        except TorchiidError as exc:
-            print(f"torchiid: error: {exc}", file=sys.stderr)
-            return 2
-    return cli.main(argv)
+def _main(argv):
+    return cli.main(["eval", *[str(a) for a in argv]])
 
 
 def _rows(out):
@@ -213,6 +196,7 @@ def test_mit_trivial_rows_equal_metric(tmp_path, method):
         )
     summary = json.loads((out / "summary.json").read_text())
     assert summary["dataset"] == "mit" and summary["method"] == method
+    assert summary["torchiid_version"] == torchiid.__version__
     assert summary["n_images"] == summary["n_scored"] == 2 and summary["failures"] == []
     assert summary["status"] == "complete" and summary["median_seconds"] >= 0
     mean = np.mean([float(r["lmse"]) for r in rows])

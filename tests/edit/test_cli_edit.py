@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from torchiid.cli import main
-from torchiid.io import load_image, save_image
+from torchiid.io import load_image, read_exr, save_image
 from torchiid.synthetic import mondrian
 
 
@@ -26,8 +26,9 @@ def test_merge_writes_result_layers_and_reusable_decomposition(files):
     d, out = files
     for name in ["m-merge.png", "m-merge.exr", "m-merge-C.exr", "m-merge-shading.png",
                  "m-merge-info.json", "m-reflectance-linear16.png", "m-shading.exr",
-                 "m-sigma.exr", "m-rho.exr"]:  # fmt: skip
+                 "m-sigma.exr"]:  # fmt: skip
         assert (out / name).is_file(), name
+    assert not (out / "m-rho.exr").exists()  # rho = I / sigma, rebuilt by --from
     # the merged components reconstruct the input (8-bit rounding)
     a = load_image(d / "m.png").image
     b = load_image(out / "m-merge.png").image
@@ -73,7 +74,7 @@ def test_errors_one_line_and_no_overwrite(files, tmp_path, capsys):
     assert (tmp_path / "m-recolour.png").read_bytes() == before
     assert main([*base, "--mask", str(d / "mask.png"), "--hue", "30", "--overwrite"]) == 0
     assert (tmp_path / "m-recolour.png").read_bytes() != before
-    # Stage 1 layers missing in a decompose-only folder
+    # the Stage 1 shading missing (a folder of the retinex method, or of an older torchiid)
     only = tmp_path / "only"
     only.mkdir()
     for n in ("m-reflectance-linear16.png", "m-shading.exr"):
@@ -86,13 +87,73 @@ def test_errors_one_line_and_no_overwrite(files, tmp_path, capsys):
     assert not np.any([p.name.startswith(".torchiid") for p in tmp_path.iterdir()])
 
 
-def test_decompose_save_stage1_folder_serves_every_edit(files, tmp_path):
+@pytest.fixture(scope="module")
+def decomposed(files, tmp_path_factory):
+    """A folder written by plain `torchiid decompose` (default options), and one with rho."""
     d, _ = files
-    dec = tmp_path / "dec"
-    argv = ["decompose", str(d / "m.png"), "-o", str(dec), "--save-stage1", "--iterations", "1"]
-    assert main([*argv, "--no-progress"]) == 0
-    assert (dec / "m-sigma.exr").is_file() and (dec / "m-rho.exr").is_file()
-    out = tmp_path / "edits"
-    assert main(["edit", "merge", str(d / "m.png"), "--from", str(dec), "-o", str(out)]) == 0
-    a = load_image(d / "m.png").image
-    assert float((a - load_image(out / "m-merge.png").image).abs().max()) < 0.02
+    plain = tmp_path_factory.mktemp("plain")
+    argv = ["decompose", str(d / "m.png"), "--iterations", "1", "--no-progress"]
+    assert main([*argv, "-o", str(plain)]) == 0
+    with_rho = tmp_path_factory.mktemp("with_rho")
+    assert main([*argv, "-o", str(with_rho), "--save-stage1"]) == 0
+    return plain, with_rho
+
+
+EVERY_OPERATION = [
+    ["merge"],
+    ["illumination-colour", "--tint", "warm"],
+    ["illumination-intensity"],
+    ["illumination-intensity", "--no-merge"],
+    ["remove-texture", "--mask", "mask.png"],
+    ["replace-albedo", "--mask", "mask.png", "--texture", "tex.png"],
+    ["recolour", "--mask", "mask.png", "--hue", "90"],
+    ["soften-shadows", "--amount", "0.5"],
+]
+
+
+@pytest.mark.parametrize("argv", EVERY_OPERATION, ids=lambda a: " ".join(a[:2]))
+def test_a_plain_decompose_folder_serves_every_edit(files, decomposed, tmp_path, argv):
+    """`edit --from` a folder of `torchiid decompose`: the same result as with rho.exr there."""
+    d, _ = files
+    plain, with_rho = decomposed
+    assert (plain / "m-sigma.exr").is_file() and not (plain / "m-rho.exr").exists()
+    op, opts = argv[0], [str(d / a) if a.endswith(".png") else a for a in argv[1:]]
+    results = []
+    for folder in (plain, with_rho):
+        out = tmp_path / folder.name
+        base = ["edit", op, str(d / "m.png"), "--from", str(folder), "-o", str(out)]
+        assert main([*base, *opts]) == 0
+        assert not (out / "m-shading.exr").exists()  # nothing decomposed again
+        results.append(read_exr(out / f"m-{op}.exr")[0])
+    # rho rebuilt as I / sigma is the layer decompose returned, to float rounding
+    np.testing.assert_allclose(results[0], results[1], rtol=1e-4, atol=1e-6)
+
+
+def test_rho_rebuilt_from_sigma_is_the_decomposition_s(files, decomposed):
+    from torchiid.commands.edit import _load_saved
+
+    d, _ = files
+    _, with_rho = decomposed
+    image = load_image(d / "m.png").image
+    saved = _load_saved(with_rho, "m", image, need_stage1=True)
+    (with_rho / "m-rho.exr").rename(with_rho / "m-rho.exr.kept")
+    try:
+        rebuilt = _load_saved(with_rho, "m", image, need_stage1=True)
+    finally:
+        (with_rho / "m-rho.exr.kept").rename(with_rho / "m-rho.exr")
+    torch.testing.assert_close(rebuilt[3], saved[3], rtol=1e-5, atol=1e-6)
+    for a, b in zip(rebuilt[:3], saved[:3], strict=True):
+        assert torch.equal(a, b)
+
+
+def test_edit_records_its_version_and_decomposes_like_decompose(files):
+    import json
+
+    import torchiid
+
+    d, out = files
+    info = json.loads((out / "m-merge-info.json").read_text())
+    assert info["torchiid_version"] == torchiid.__version__
+    layers = json.loads((out / "m-info.json").read_text())
+    assert layers["torchiid_version"] == torchiid.__version__ and "solves" in layers
+    assert "m-sigma.exr" in layers["files"]

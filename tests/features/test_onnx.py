@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+import torchiid
 from torchiid.core.exceptions import ModelError
 from torchiid.features import onnx_backend
 from torchiid.features.backbone import FeatureMapExtractor, efficientnet_lite0, weights_sha256
@@ -39,6 +40,7 @@ def test_manifest_records_file_and_weights(onnx_path):
     assert [i["name"] for i in entry["inputs"]] == ["image"]
     assert [o["name"] for o in entry["outputs"]] == ["features"]
     assert entry["opset"] == onnx_backend.OPSET
+    assert entry["torchiid_version"] == torchiid.__version__
     assert not [p for p in onnx_path.parent.iterdir() if p.name.endswith(".tmp")]
 
 

@@ -94,7 +94,7 @@ def _hidden(folder: Path) -> list[str]:
 
 
 def _set_names(stem: str) -> set[str]:
-    return set(layer_file_names(stem))
+    return set(layer_file_names(stem)) | {f"{stem}-sigma.exr"}
 
 
 def _assert_clean(run) -> None:
@@ -321,6 +321,7 @@ OPTIONAL = ["--save-npy", "--save-confidence", "--save-iterations"]
 
 def _full_set(stem: str) -> set[str]:
     names = set(layer_file_names(stem, save_npy=True, save_confidence=True))
+    names.add(f"{stem}-sigma.exr")
     return names | {f"{stem}-iter1-{x}.png" for x in ("sigma", "rho", "R", "S")}
 
 

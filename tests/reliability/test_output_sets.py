@@ -143,14 +143,15 @@ def test_a_write_error_fails_one_image_and_the_batch_goes_on(tmp_path, monkeypat
     ]
     assert "torchiid: 1 of 3 input(s) failed" in err
     names = {p.name for p in out.iterdir()}
-    assert names == set(layer_file_names("a")) | set(layer_file_names("c")) | {"manifest.jsonl"}
+    made = {"manifest.jsonl", "a-sigma.exr", "c-sigma.exr"}
+    assert names == set(layer_file_names("a")) | set(layer_file_names("c")) | made
     assert not [p for p in out.rglob(".*")]
 
 
 def test_an_unexpected_error_is_one_line_and_the_batch_goes_on(tmp_path, monkeypatch, capsys):
     _photo(tmp_path / "a.png")
     _photo(tmp_path / "b.png")
-    import torchiid.commands.decompose as command
+    import torchiid.model as command
 
     real = command.decompose
 
@@ -170,7 +171,8 @@ def test_an_unexpected_error_is_one_line_and_the_batch_goes_on(tmp_path, monkeyp
         f"torchiid: error: {tmp_path / 'a.png'}: internal error (TypeError: a bug); "
         "rerun with --verbose for the traceback"
     ) in err.splitlines()
-    assert {p.name for p in out.iterdir()} == set(layer_file_names("b")) | {"manifest.jsonl"}
+    made = set(layer_file_names("b")) | {"b-sigma.exr", "manifest.jsonl"}
+    assert {p.name for p in out.iterdir()} == made
 
 
 # ------------------------------------------------------------------------------------------
@@ -304,7 +306,7 @@ def test_libjpeg_damage_reports_reject_the_file_and_stay_off_stderr(tmp_path, ca
 def test_sigterm_cleans_up_like_ctrl_c(tmp_path, monkeypatch, capsys):
     import signal
 
-    import torchiid.commands.decompose as command
+    import torchiid.model as command
 
     _photo(tmp_path / "a.png")
 

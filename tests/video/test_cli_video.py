@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+import torchiid
 from torchiid.cli import main
 from torchiid.eval.video import write_flo
 from torchiid.io import save_image
@@ -55,6 +56,7 @@ def test_writes_every_frame_and_the_parameters(frames, tmp_path, capsys):
     assert info["shading_white"] == first["shading_white"]  # one view scale for the sequence
     params = json.loads((out / "video-params.json").read_text())
     assert params["params"]["iterations"] == 1 and params["video"]["temporal_norm"] == "l2"
+    assert params["torchiid_version"] == info["torchiid_version"] == torchiid.__version__
     assert not (out / "frame-000001-params.json").exists()
     r = np.load(out / "frame-000003-reflectance.npy")
     s = np.load(out / "frame-000003-shading.npy")
@@ -84,6 +86,10 @@ def test_existing_outputs_are_kept_and_the_chain_resumes(frames, tmp_path, capsy
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "video-params.json" in err[0] and key in err[0], err
         assert "--overwrite" in err[0] and snapshot(out) == before
+    # files of another torchiid version: the version is no setting, the chain resumes
+    params = json.loads((out / "video-params.json").read_text())
+    (out / "video-params.json").write_text(json.dumps({**params, "torchiid_version": "0.9.0"}))
+    before["video-params.json"] = (out / "video-params.json").read_bytes()
     # the whole sequence into the same folder: frames 1-2 exist (reported), 3-4 are new
     assert main(["decompose-video", str(frames), "-o", str(out), *FAST]) == 1
     err = capsys.readouterr().err
@@ -181,6 +187,7 @@ def test_eval_video_with_estimated_and_given_flow(frames, seq, tmp_path, capsys)
     assert "frame_0001.png -> frame_0002.png" in text and "mean" in text
     data = json.loads((summary / "video-summary.json").read_text())
     assert len(data["pairs"]) == 3 and data["mean"]["given"] is not None
+    assert data["torchiid_version"] == torchiid.__version__
     assert all(p["given_valid"] < 1 for p in data["pairs"])  # the occlusion maps were read
     assert data["pairs"][1]["occlusion_file"] == str(flow / "occlusions_0002.png")
     # the reflectance flickers less than the input frames themselves (same flow, same pixels)

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from torchiid._version import __version__
 from torchiid.baselines.retinex import retinex_decomposition
 from torchiid.core.exceptions import (
     ConvergenceWarning,
@@ -68,6 +69,7 @@ __all__ = [
     "output_names",
     "params_hash",
     "process_image",
+    "solver_note",
     "worker_state",
 ]
 
@@ -99,7 +101,9 @@ class RunSettings:
         linear: 8/16-bit files hold linear values.
         device: ``"cpu"``, ``"cuda"`` or ``"auto"`` (resolved in each worker).
         overwrite: replace existing output files.
-        save_npy, save_confidence, save_stage1, save_iterations: the optional files.
+        save_npy, save_confidence, save_stage1, save_iterations: the optional files
+            (``save_stage1``: Stage 1's ``-rho.exr``; its ``-sigma.exr`` is always written by
+            the semantic method, for ``torchiid edit --from``).
         mask: a mask file for every image, or ``None``.
         mask_sha256: its SHA-256 (part of :attr:`params_hash`).
         threads: torch threads in each worker process (``None``: leave them as they are).
@@ -132,9 +136,10 @@ def params_hash(settings: RunSettings) -> str:
 
     The canonical JSON (sorted keys, no spaces) of the full parameter set, the method, whether
     8/16-bit files are linear, the optional files asked for and the SHA-256 of the ``--mask``
-    file. Not in it: the device, ``overwrite``, ``redo``, threads and workers, which change
-    where and how fast the files are made, not which (the solvers' float sums may differ in the
-    last digits between devices and thread counts).
+    file. Not in it: the torchiid version (a rerun after an upgrade skips what is done;
+    ``redo`` makes it again); the device, ``overwrite``, ``redo``, threads and workers, which
+    change where and how fast the files are made, not which (the solvers' float sums may
+    differ in the last digits between devices and thread counts).
     """
     what = {
         # the parameters alone, not the version that wrote them: a new version that computes
@@ -191,7 +196,8 @@ class ImageResult:
     attempts: int = 1
     worker: str = ""
     recovered: bool = False
-    note: str | None = None
+    note: str | None = None  # shown unless -q
+    detail: str | None = None  # shown with -v
     failure: str | None = None  # "input", "output", "error" or "worker" (see process_image)
 
     @property
@@ -226,8 +232,10 @@ def output_names(stem: str, settings: Any, params: Parameters) -> list[str]:
     names = layer_file_names(
         stem, save_npy=settings.save_npy, save_confidence=settings.save_confidence
     )
-    if getattr(settings, "save_stage1", False) and settings.method == "semantic":
-        names += [f"{stem}-sigma.exr", f"{stem}-rho.exr"]
+    if settings.method == "semantic":  # σ always: every `torchiid edit --from` needs it
+        names.append(f"{stem}-sigma.exr")
+        if getattr(settings, "save_stage1", False):
+            names.append(f"{stem}-rho.exr")
     if settings.save_iterations and settings.method == "semantic":
         for k in range(1, params.iterations + 1):
             names += [f"{stem}-iter{k}-{layer}.png" for layer in ("sigma", "rho", "R", "S")]
@@ -367,9 +375,11 @@ def _write_outputs(
     if settings.method == "semantic":
         params_json = params.to_json()
     else:
-        params_json = json.dumps({"method": "color_retinex", **RETINEX_DEFAULTS}, indent=2) + "\n"
+        retinex = {"torchiid_version": __version__, "method": "color_retinex", **RETINEX_DEFAULTS}
+        params_json = json.dumps(retinex, indent=2) + "\n"
     white = float(result.shading_white[0])
-    stage1 = settings.save_stage1 and result.sigma is not None
+    sigma = settings.method == "semantic" and result.sigma is not None
+    rho = sigma and settings.save_stage1
     iterations = settings.save_iterations and getattr(result, "iterations", None)
     info = {
         "input": str(loaded.path),
@@ -384,8 +394,11 @@ def _write_outputs(
         **extra,
         "files": {},
     }
-    if stage1:
-        info["files"][f"{stem}-sigma.exr"] = "last Stage 1 shading sigma, float32 linear OpenEXR"
+    if sigma:
+        info["files"][f"{stem}-sigma.exr"] = (
+            "last Stage 1 shading sigma, float32 linear OpenEXR (rho = I / sigma)"
+        )
+    if rho:
         info["files"][f"{stem}-rho.exr"] = "last Stage 1 reflectance rho, float32 linear OpenEXR"
     if iterations:
         for k in range(1, len(result.iterations) + 1):
@@ -407,10 +420,13 @@ def _write_outputs(
         save_npy=settings.save_npy,
         output_set=tx,
     )
-    if stage1:
-        # the last Stage 1 layers, exact, for `torchiid edit --from` (merge, illumination)
-        sg, rh = result.sigma[0].cpu(), result.rho[0].cpu()
+    if sigma:
+        # the last Stage 1 shading, exact, for `torchiid edit --from` (merge, illumination);
+        # its reflectance is the photo divided by it, rebuilt there unless written here
+        sg = result.sigma[0].cpu()
         tx.write(f"{stem}-sigma.exr", lambda p: save_image(p, sg, "exr"))
+    if rho:
+        rh = result.rho[0].cpu()
         tx.write(f"{stem}-rho.exr", lambda p: save_image(p, rh, "exr"))
     if iterations:
         named = {"sigma": "sigma", "rho": "rho", "R": "reflectance", "S": "shading"}
@@ -422,13 +438,31 @@ def _write_outputs(
                 tx.write(f"{stem}-iter{k}-{name}.png", lambda p, x=x: save_image(p, x, "srgb8"))
 
 
-def _capped_note(path: str, stem: str, solves: list, converge: bool = False) -> str | None:
+def solver_note(
+    where: str, solves: list, converge: bool, info_name: str
+) -> tuple[str | None, str | None]:
+    """What to say about solves that stopped before their tolerance: ``(note, detail)``.
+
+    With ``converge`` (the ``converged`` preset) a capped solve is a note the user sees: the
+    result is not the energy's minimiser. Otherwise the caps are the preset's on purpose (the
+    tuned, early-stopped solvers): nothing to warn about, a detail for ``-v``. Either way every
+    solve is recorded in ``info_name``.
+
+    Args:
+        where: the input, to name in the line.
+        solves: the decomposition's :class:`~torchiid.model.SolveReport` list.
+        converge: ``params.converge``.
+        info_name: the file that records the solves.
+
+    Returns:
+        ``(note, None)``, ``(None, detail)`` or ``(None, None)`` when every solve converged.
+    """
     capped = [r for r in solves if not r.converged]
     if not capped:
-        return None
+        return None, None
     worst = max(capped, key=lambda r: r.residual / r.tolerance)
     if not converge:
-        why = "the default preset caps them on purpose"
+        why = "the preset's caps"
     elif all(r.capped for r in capped):
         why = "safety caps: raise cg_max_iter / bregman_iter"
     else:
@@ -436,11 +470,12 @@ def _capped_note(path: str, stem: str, solves: list, converge: bool = False) -> 
             "some could make no further progress, which larger caps would not change; "
             "--verbose says which"
         )
-    return (
-        f"{path}: {len(capped)} of {len(solves)} solver runs stopped before their tolerance "
+    line = (
+        f"{where}: {len(capped)} of {len(solves)} solver runs stopped before their tolerance "
         f"({why}; largest residual "
-        f"{worst.residual:.1g} against {worst.tolerance:g}); details in {stem}-info.json"
+        f"{worst.residual:.1g} against {worst.tolerance:g}); details in {info_name}"
     )
+    return (line, None) if converge else (None, line)
 
 
 def process_image(
@@ -600,8 +635,8 @@ def _finish(result, placed, settings, t0, decomposition, stem) -> None:
     result.status = "done"
     result.files = [Path(os.path.relpath(p, settings.out)).as_posix() for p in placed]
     result.seconds = time.perf_counter() - t0
-    result.note = _capped_note(
-        result.path, stem, list(decomposition.solves), settings.params.converge
+    result.note, result.detail = solver_note(
+        result.path, list(decomposition.solves), settings.params.converge, f"{stem}-info.json"
     )
 
 
@@ -630,7 +665,7 @@ def _run_method(decompose_fn, batch, mbatch, settings, params, stem, show_progre
                 params,
                 mask=mbatch,
                 return_iterations=settings.save_iterations,
-                return_stage1=settings.save_stage1,
+                return_stage1=True,  # sigma.exr
                 progress=progress,
             )
     finally:

@@ -21,7 +21,8 @@ of a key is the one that counts. Fields:
 ``seconds``     time spent on the image
 ``attempts``    1, or more when a worker died while processing it and it was tried again
 ``worker``      ``host:pid`` of the process that processed it
-``time``        when it ended (UTC, ISO 8601)
+``time``        when it ended (UTC, ISO 8601); ``torchiid_version`` the version of
+                torchiid that wrote the line
 ==============  ===========================================================================
 
 **Skipping on a rerun** (:func:`plan`): an input is skipped when its key's last record has the
@@ -49,6 +50,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchiid._version import __version__
 from torchiid.collection.job import ImageJob, ImageResult, file_sha256
 from torchiid.io.inputs import InputItem
 
@@ -87,6 +89,7 @@ def record_of(result: ImageResult, params: str, mask: str | None = None) -> dict
         "attempts": result.attempts,
         "worker": result.worker,
         "time": now.replace("+00:00", "Z"),
+        "torchiid_version": __version__,
     }
 
 

@@ -12,71 +12,112 @@ import logging
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from torchiid.collection import (
-    MANIFEST_NAME,
-    RETINEX_DEFAULTS,
-    ImageResult,
-    Plan,
-    Progress,
-    RunInterrupted,
-    RunSettings,
-    RunSummary,
-    file_sha256,
-    output_names,
-    run_collection,
-)
-from torchiid.core.device import resolve_device
-from torchiid.core.exceptions import ParameterError, TorchiidError
-from torchiid.io import load_mask
-from torchiid.io.inputs import list_inputs, unique_keys
-from torchiid.io.layers import check_output_folder
-from torchiid.model import decompose
-from torchiid.params import Parameters
+from torchiid.commands.common import add_parameter_options, params_from_args, say
 
-__all__ = [
-    "RETINEX_DEFAULTS",
-    "add_parameter_options",
-    "output_names",
-    "params_from_args",
-    "run_decompose",
-]
+if TYPE_CHECKING:
+    from torchiid.collection import ImageResult, Plan, Progress, RunSettings, RunSummary
+    from torchiid.params import Parameters
+
+__all__ = ["DESCRIPTION", "add_arguments", "run"]
 
 log = logging.getLogger("torchiid")
 
+DESCRIPTION = """\
+Split photos into reflectance and shading. For photo.jpg it writes into the output folder
+photo-reflectance.png and photo-shading.png (8-bit sRGB, viewable), photo-preview.png,
+photo-reflectance-linear16.png and photo-shading.exr (the exact layers, linear),
+photo-sigma.exr (the Stage 1 shading, for `torchiid edit --from`), photo-info.json and
+photo-params.json; and out/manifest.jsonl, which makes a rerun skip what is done."""
 
-def add_parameter_options(p: argparse.ArgumentParser) -> None:
-    """The options that choose the method's parameters (shared by ``decompose`` and ``eval``)."""
-    p.add_argument(
-        "--preset",
-        default="default",
-        help=(
-            "parameter preset: default, print (photos of printed matter: documents, "
-            "labels), paper or converged (every solve to tolerance)"
-        ),
+
+def add_arguments(d: argparse.ArgumentParser) -> None:
+    """The options of ``torchiid decompose``."""
+    d.add_argument(
+        "inputs",
+        nargs="*",
+        help="image files, directories and glob patterns (quote them: 'photos/**/*.jpg')",
     )
-    p.add_argument("--params", type=Path, help="JSON file of parameters (over the preset)")
-    p.add_argument("--variant", help="ablation variant v1..v7 or baseline1..baseline3")
-    p.add_argument("--iterations", type=int, help="alternations k (overrides the preset)")
-    p.add_argument(
-        "--max-side", type=int, help="working resolution: longer side in px (0 = full resolution)"
+    d.add_argument("-o", "--output", type=Path, required=True, help="output directory")
+    d.add_argument("-r", "--recursive", action="store_true", help="also take images in subfolders")
+    d.add_argument(
+        "--list",
+        action="append",
+        type=Path,
+        metavar="FILE",
+        help="a list of inputs: one path per line, or a CSV file with a 'path' and an optional "
+        "'mask' column; relative paths are relative to the list's folder (repeatable)",
     )
-
-
-def params_from_args(args: argparse.Namespace) -> Parameters:
-    """Parameters from --preset, --params, --variant, --iterations and --max-side."""
-    params = Parameters.preset(args.preset)
-    if args.params is not None:
-        params = Parameters.from_json(args.params, base=params)
-    if args.variant:
-        params = params.variant(args.variant)
-    if args.iterations is not None:
-        if args.iterations < 1:
-            raise ParameterError(f"--iterations must be >= 1, got {args.iterations}")
-        params = params.replace(iterations=args.iterations)
-    if args.max_side is not None:
-        params = params.replace(max_side=args.max_side)
-    return params
+    d.add_argument(
+        "--method",
+        default="semantic",
+        choices=["semantic", "retinex"],
+        help="semantic: the paper's method (default); retinex: Grosse et al.'s "
+        "colour Retinex baseline",
+    )
+    add_parameter_options(d)
+    d.add_argument(
+        "--mask", type=Path, help="mask image (nonzero = inside); applies to every input"
+    )
+    d.add_argument(
+        "--linear",
+        action="store_true",
+        help="8/16-bit input files hold linear values (default: sRGB-encoded)",
+    )
+    d.add_argument(
+        "--save-confidence",
+        action="store_true",
+        help="also write <stem>-confidence.png (255: trusted colour, 0: dark or clipped pixel)",
+    )
+    d.add_argument(
+        "--save-stage1",
+        action="store_true",
+        help="also write the last Stage 1 reflectance <stem>-rho.exr (float, linear; "
+        "`torchiid edit --from` rebuilds it from the photo and <stem>-sigma.exr otherwise)",
+    )
+    d.add_argument(
+        "--save-npy",
+        action="store_true",
+        help="also write float32 linear .npy arrays of reflectance and shading",
+    )
+    d.add_argument(
+        "--save-iterations",
+        action="store_true",
+        help="write every iteration's sigma, rho, R, S (sRGB PNGs)",
+    )
+    d.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    d.add_argument(
+        "--retry-failed",
+        action="store_true",
+        help="also run the inputs the manifest records as failed (skipped otherwise)",
+    )
+    d.add_argument(
+        "--redo",
+        action="store_true",
+        help="ignore the manifest: run every input again (with --overwrite to replace files)",
+    )
+    d.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="run N worker processes on this machine, each with its share of the cores "
+        "(default: one image at a time in this process)",
+    )
+    d.add_argument(
+        "--dask-scheduler",
+        metavar="ADDRESS",
+        help="send the images to the dask.distributed cluster of this scheduler "
+        "(e.g. tcp://10.0.0.1:8786); needs pip install 'torchiid[dask]'",
+    )
+    d.add_argument(
+        "--retries",
+        type=int,
+        default=1,
+        metavar="N",
+        help="times an image is tried again when its worker dies (--workers) or its task "
+        "raises (Dask retries=); default 1",
+    )
 
 
 def _duration(seconds: float) -> str:
@@ -95,10 +136,18 @@ class _Printer:
 
     def __init__(self, args: argparse.Namespace, out: Path) -> None:
         self.show = not args.no_progress
+        self.quiet = getattr(args, "quiet", False)
+        self.verbose = getattr(args, "verbose", False)
         self.out = out
         self.bar = None
 
+    def note(self, message: str) -> None:
+        """A note (``torchiid: note: ...``) or a summary line: not with ``-q``."""
+        if not self.quiet:
+            self.say(message)
+
     def say(self, message: str) -> None:
+        """Any line, above the progress bar while it shows."""
         if self.bar is not None:
             from tqdm import tqdm
 
@@ -110,7 +159,7 @@ class _Printer:
         from tqdm import tqdm
 
         for item, record in plan.failed_before:
-            self.say(
+            self.note(
                 f"torchiid: note: {item.path}: failed before ({record.get('message')}); "
                 "--retry-failed tries it again"
             )
@@ -133,7 +182,9 @@ class _Printer:
             self.say(f"torchiid: error: {result.message}")
             return
         if result.note:
-            self.say(f"torchiid: note: {result.note}")
+            self.note(f"torchiid: note: {result.note}")
+        if result.detail and self.verbose:
+            self.say(f"torchiid: {result.detail}")
         how = "complete files found" if result.recovered else f"{result.seconds:.1f} s"
         line = f"{result.path} -> {self.out}/{result.key}-* ({how})"
         if progress.to_process > 1:
@@ -144,12 +195,12 @@ class _Printer:
                 + (f", {_duration(eta)} left" if eta is not None and eta > 0 else "")
             )
         if self.bar is not None:
-            self.say(line)
+            self.note(line)
         else:
             log.info(line)
 
     def retrying(self, job, how: str) -> None:
-        self.say(f"torchiid: note: {job.path}: its worker process died ({how}); trying it again")
+        self.note(f"torchiid: note: {job.path}: its worker process died ({how}); trying it again")
 
     def close(self) -> None:
         if self.bar is not None:
@@ -158,13 +209,13 @@ class _Printer:
 
 
 def _settings(args: argparse.Namespace, params: Parameters, out: Path) -> RunSettings:
+    from torchiid.collection import RunSettings, file_sha256
+    from torchiid.io import load_mask
+
     mask_sha = None
     if args.mask is not None:
         load_mask(args.mask)  # a missing, unreadable or empty mask is a set-up error
         mask_sha = file_sha256(args.mask)
-    threads = getattr(args, "threads", None)
-    if threads is not None and threads < 1:
-        raise TorchiidError(f"--threads must be >= 1, got {threads}")
     return RunSettings(
         out=out,
         params=params,
@@ -178,13 +229,13 @@ def _settings(args: argparse.Namespace, params: Parameters, out: Path) -> RunSet
         save_iterations=args.save_iterations,
         mask=args.mask,
         mask_sha256=mask_sha,
-        threads=threads,
+        threads=getattr(args, "threads", None),
         redo=getattr(args, "redo", False),
     )
 
 
-def run_decompose(args: argparse.Namespace) -> int:
-    """Run the ``decompose`` subcommand; returns the exit status.
+def run(args: argparse.Namespace) -> int:
+    """Run ``torchiid decompose``; returns the exit status.
 
     Everything that concerns the whole run (parameters, device, the output folder, the input
     list, the ``--mask`` file, the output folder's lock, and then, when there is work, the
@@ -197,6 +248,13 @@ def run_decompose(args: argparse.Namespace) -> int:
     leave nothing (on Dask, tasks still running after the wait are named: they may still write
     their files).
     """
+    from torchiid.collection import RunInterrupted, run_collection
+    from torchiid.core.device import resolve_device
+    from torchiid.core.exceptions import TorchiidError
+    from torchiid.io.inputs import list_inputs, unique_keys
+    from torchiid.io.layers import check_output_folder
+    from torchiid.model import decompose
+
     params = params_from_args(args)
     device = resolve_device(args.device)
     workers = getattr(args, "workers", None)
@@ -252,7 +310,7 @@ def run_decompose(args: argparse.Namespace) -> int:
             f"torchiid: interrupted{where}; {s.done} of {s.total} input(s) written{skipped}",
             file=sys.stderr,
         )
-        if s.left_running:
+        if s.left_running:  # files may still appear: said even with -q
             print(
                 f"torchiid: note: {len(s.left_running)} image(s) were still running on the "
                 f"cluster and may still write their files into {args.output} (their tasks are "
@@ -263,10 +321,12 @@ def run_decompose(args: argparse.Namespace) -> int:
         return 130
     finally:
         printer.close()
-    return _report(summary, args.output)
+    return _report(summary, args)
 
 
-def _report(s: RunSummary, out: Path) -> int:
+def _report(s: RunSummary, args: argparse.Namespace) -> int:
+    from torchiid.collection import MANIFEST_NAME
+
     parts = [f"{s.done} done", f"{s.skipped_done + s.skipped_failed} skipped"]
     if s.skipped_failed:
         parts[-1] += f" ({s.skipped_failed} failed before)"
@@ -275,9 +335,9 @@ def _report(s: RunSummary, out: Path) -> int:
     if s.processed and s.seconds > 0:
         rate = f" in {_duration(s.seconds)} ({60 * s.processed / s.seconds:.1f} images/minute)"
     retried = f"; {s.retried} retried after their worker died" if s.retried else ""
-    manifest = out / MANIFEST_NAME
+    manifest = args.output / MANIFEST_NAME
     where = f"; manifest {manifest}" if manifest.is_file() else ""
-    print(f"torchiid: {', '.join(parts)}{rate}{retried}{where}", file=sys.stderr)
+    say(args, f"torchiid: {', '.join(parts)}{rate}{retried}{where}")
     if s.all_failed:
         print(f"torchiid: {s.all_failed} of {s.total} input(s) failed", file=sys.stderr)
         return 1

@@ -1,4 +1,13 @@
-"""``torchiid edit``: decompose one photo (or reuse a saved decomposition) and edit it."""
+"""``torchiid edit``: decompose one photo (or reuse a saved decomposition) and edit it.
+
+A saved decomposition (``--from DIR``) is the folder of ``torchiid decompose`` or of an
+earlier ``torchiid edit``: ``<stem>-reflectance-linear16.png`` and ``<stem>-shading.exr``
+(Stage 2's ``R``, ``S``) and ``<stem>-sigma.exr`` (the last Stage 1 shading ``σ``, which the
+merged components and the illumination edits need). Stage 1's reflectance is ``ρ = I / σ``
+(clipped to ``[0, 1]``, 0 outside a mask): it is read from ``<stem>-rho.exr`` when that is
+there (``decompose --save-stage1``) and rebuilt from the photo otherwise, to float rounding
+the same layer.
+"""
 
 from __future__ import annotations
 
@@ -7,26 +16,22 @@ import json
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-import torch
+from torchiid.commands.common import add_parameter_options, params_from_args, say
 
-from torchiid import edit
-from torchiid.commands.decompose import add_parameter_options, params_from_args
-from torchiid.core.device import resolve_device
-from torchiid.core.exceptions import ImageError, ParameterError, TorchiidError
-from torchiid.io import load_image, load_mask, save_image
-from torchiid.io.image import read_exr
-from torchiid.io.layers import (
-    OutputError,
-    OutputSet,
-    check_output_folder,
-    layer_file_names,
-    write_layers,
+if TYPE_CHECKING:
+    import torch
+
+__all__ = ["COMBINE", "DESCRIPTION", "OPERATIONS", "add_arguments", "run"]
+
+DESCRIPTION = (
+    "Edit a photo through its reflectance and shading. Decomposes INPUT, or reuses the files "
+    "of a saved decomposition (--from DIR: a folder written by `torchiid decompose` or "
+    "`torchiid edit`), and writes the result and the edited layers into OUT_DIR."
 )
-
-__all__ = ["OPERATIONS", "add_edit_parser", "run_edit"]
 
 #: operation -> needs a mask, needs the Stage 1 layers
 OPERATIONS = {
@@ -39,16 +44,20 @@ OPERATIONS = {
     "soften-shadows": (False, False),
 }
 
+#: ``--combine`` choices (:data:`torchiid.edit.COMBINE`, named here so ``--help`` needs no torch)
+COMBINE = ("mean", "e1", "e2", "max")
 
-def add_edit_parser(sub) -> None:
-    """Add the ``edit`` subcommand to the ``torchiid`` parser's subparsers."""
-    p = sub.add_parser(
-        "edit",
-        help="edit a photo through its decomposition (relight, recolour, retexture)",
-        description="Edit a photo through its reflectance and shading. Decomposes INPUT, or "
-        "reuses the files of a saved decomposition (--from DIR), and writes the result and the "
-        "edited layers into OUT_DIR.",
-    )
+#: the layers each operation writes besides the result
+_LAYERS = {
+    "merge": ("reflectance", "shading", "C"),
+    "illumination-colour": ("shading",),
+    "illumination-intensity": ("shading",),
+    "soften-shadows": ("shading",),
+}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``torchiid edit``."""
     p.add_argument("operation", choices=list(OPERATIONS), help="the edit")
     p.add_argument("input", type=Path, help="the photo")
     p.add_argument("-o", "--output", type=Path, required=True, help="output directory")
@@ -56,9 +65,9 @@ def add_edit_parser(sub) -> None:
         "--from",
         dest="from_dir",
         type=Path,
+        metavar="DIR",
         help="reuse the decomposition saved in DIR by `torchiid decompose` or `torchiid edit` "
-        "(<stem>-reflectance-linear16.png, <stem>-shading.exr; <stem>-sigma.exr and "
-        "<stem>-rho.exr, written by `edit`, for merge and the illumination edits)",
+        "(<stem>-reflectance-linear16.png, <stem>-shading.exr, <stem>-sigma.exr)",
     )
     p.add_argument("--mask", type=Path, help="edit region (nonzero = inside)")
     p.add_argument(
@@ -76,9 +85,7 @@ def add_edit_parser(sub) -> None:
     p.add_argument(
         "--radius", type=float, default=0.35, help="tint fall-off, fraction of the longer side"
     )
-    p.add_argument(
-        "--combine", default="mean", choices=list(edit.COMBINE), help="how E1 and E2 combine"
-    )
+    p.add_argument("--combine", default="mean", choices=COMBINE, help="how E1 and E2 combine")
     p.add_argument("--flatten", default="mean", choices=["mean", "median"])
     p.add_argument("--texture", type=Path, help="replace-albedo: texture image")
     p.add_argument("--fit", default="tile", choices=["tile", "stretch"])
@@ -95,44 +102,148 @@ def add_edit_parser(sub) -> None:
         action="store_true",
         help="8/16-bit input files hold linear values (default: sRGB-encoded)",
     )
-    p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
 
 
-def _load_saved(folder: Path, stem: str, shape, need_stage1: bool):
-    """R, S (and σ, ρ or ``None``) from a saved decomposition, as ``(1, C, H, W)``."""
+def _read_exr(path: Path) -> torch.Tensor:
+    """A float OpenEXR file as a ``(C, H, W)`` tensor."""
+    import numpy as np
+    import torch
+
+    from torchiid.io.image import read_exr
+
+    array = np.ascontiguousarray(read_exr(path)[0])
+    x = torch.from_numpy(array)
+    return x[None] if x.ndim == 2 else x.permute(2, 0, 1)
+
+
+def _load_saved(folder: Path, stem: str, image: torch.Tensor, need_stage1: bool) -> tuple:
+    """R, S, σ, ρ (``None`` without ``-sigma.exr``) of a saved decomposition, ``(1, C, H, W)``.
+
+    Raises:
+        TorchiidError: a file is missing, or σ is missing and ``need_stage1``.
+        ImageError: a layer has another size than ``image``.
+    """
+    import torch
+
+    from torchiid.core.exceptions import ImageError, TorchiidError
+    from torchiid.io import load_image
+
     r_path = folder / f"{stem}-reflectance-linear16.png"
     s_path = folder / f"{stem}-shading.exr"
     for path in (r_path, s_path):
         if not path.is_file():
             raise TorchiidError(f"{path}: not found (--from needs the files of `decompose`)")
     r = load_image(r_path, linear=True, alpha="ignore").image
-    s = torch.from_numpy(np.ascontiguousarray(read_exr(s_path)[0]))[None]
+    s = _read_exr(s_path)
     sig_path, rho_path = folder / f"{stem}-sigma.exr", folder / f"{stem}-rho.exr"
-    sigma = rho = None
-    if sig_path.is_file() and rho_path.is_file():
-        sigma = torch.from_numpy(np.ascontiguousarray(read_exr(sig_path)[0]))[None]
-        rho = torch.from_numpy(np.ascontiguousarray(read_exr(rho_path)[0])).permute(2, 0, 1)
-    elif need_stage1:
+    sigma = _read_exr(sig_path) if sig_path.is_file() else None
+    rho = _read_exr(rho_path) if sigma is not None and rho_path.is_file() else None
+    if sigma is None and need_stage1:
         raise TorchiidError(
-            f"{sig_path}: not found; this edit needs the Stage 1 layers, which `torchiid edit` "
-            "writes when it decomposes (run it once without --from)"
+            f"{sig_path}: not found; this edit needs the Stage 1 shading, which "
+            "`torchiid decompose` (the semantic method) and `torchiid edit` write"
         )
+    shape = tuple(image.shape[-2:])
     for name, x in (("reflectance", r), ("shading", s), ("sigma", sigma), ("rho", rho)):
-        if x is not None and tuple(x.shape[-2:]) != tuple(shape):
+        if x is not None and tuple(x.shape[-2:]) != shape:
             raise ImageError(
                 f"{folder}: the saved {name} is {x.shape[-1]}x{x.shape[-2]} px but the input is "
                 f"{shape[1]}x{shape[0]} px"
             )
-    return (
-        r[None],
-        s[None],
-        None if sigma is None else sigma[None],
-        None if rho is None else rho[None],
+    if sigma is not None and rho is None:  # ρ = I / σ, as decompose made it
+        rho = torch.where(sigma > 0, image / sigma.clamp_min(1e-30), 0.0).clamp_(0, 1)
+    return tuple(None if x is None else x[None] for x in (r, s, sigma, rho))
+
+
+def _output_names(args: argparse.Namespace, stem: str, tag: str, decomposed: bool) -> list[str]:
+    from torchiid.io.layers import layer_file_names
+
+    names = [f"{tag}.png", f"{tag}.exr", f"{tag}-info.json"]
+    for layer in _LAYERS.get(args.operation, ("reflectance",)):
+        names += [f"{tag}-{layer}.png", f"{tag}-{layer}.exr"]
+    if decomposed:
+        names += layer_file_names(stem, save_npy=False, save_confidence=False)
+        names.append(f"{stem}-sigma.exr")
+    return names
+
+
+def _check_outputs(out: Path, names: list[str], overwrite: bool) -> None:
+    from torchiid.io.layers import OutputError
+
+    for name in names:
+        target = out / name
+        if target.is_dir() and not target.is_symlink():
+            raise OutputError(f"{target}: is a folder; cannot replace it by an output")
+        if os.path.lexists(target) and not overwrite:
+            raise OutputError(f"{target} exists; pass --overwrite to replace it")
+
+
+def _decompose(args: argparse.Namespace, batch: torch.Tensor, params: Any) -> Any:
+    """Decompose ``batch``; a capped solve is said in one line (``-v`` for the preset's caps)."""
+    from torchiid.collection.job import solver_note
+    from torchiid.core.exceptions import ConvergenceWarning
+    from torchiid.model import decompose
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)  # said below, in one line
+        result = decompose(batch, params, return_stage1=True)
+    note, detail = solver_note(
+        str(args.input), list(result.solves), params.converge, f"{args.input.stem}-info.json"
     )
+    if note:
+        say(args, f"torchiid: note: {note}")
+    if detail and getattr(args, "verbose", False):
+        print(f"torchiid: {detail}", file=sys.stderr)
+    return result
 
 
-def run_edit(args: argparse.Namespace) -> int:
-    """Run the ``edit`` subcommand; returns the exit status (errors raise TorchiidError)."""
+def _apply(args, batch, r, s, sigma, rho, mask, texture) -> tuple:
+    """The edit: ``(result, {layer name: tensor}, merged or None)``."""
+    from torchiid import edit
+
+    op = args.operation
+    merged = None
+    if sigma is not None and rho is not None and (op == "merge" or not args.no_merge):
+        merged = edit.merge(batch, r, s, sigma, rho, blur=args.blur)
+    er, es = (merged.reflectance, merged.shading) if merged is not None else (r, s)
+    if op == "merge":
+        return er * es, {"reflectance": er, "shading": es, "C": merged.c}, merged
+    if op == "illumination-colour":
+        strength = 1.0 if args.strength is None else args.strength
+        result, new_s = edit.illumination_colour(
+            er, es, args.tint, strength, percentile=args.percentile, radius=args.radius
+        )
+        return result, {"shading": new_s}, merged
+    if op == "illumination-intensity":
+        strength = 0.5 if args.strength is None else args.strength
+        result, new_s = edit.illumination_intensity(
+            batch, r, s, sigma, rho, strength, combine=args.combine, blur=args.blur, merged=merged
+        )
+        return result, {"shading": new_s}, merged
+    if op == "remove-texture":
+        result, new_r = edit.remove_texture(er, es, mask, flatten=args.flatten)
+        return result, {"reflectance": new_r}, merged
+    if op == "replace-albedo":
+        result, new_r = edit.replace_albedo(er, es, mask, texture, fit=args.fit, scale=args.scale)
+        return result, {"reflectance": new_r}, merged
+    if op == "recolour":
+        result, new_r = edit.recolour(
+            er, es, mask, hue=args.hue, chroma=args.chroma, colour=args.colour
+        )
+        return result, {"reflectance": new_r}, merged
+    result, new_s = edit.soften_shadows(er, es, args.amount, mask=mask, feather=args.feather)
+    return result, {"shading": new_s}, merged
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``torchiid edit``; returns the exit status (errors raise TorchiidError)."""
+    from torchiid import edit
+    from torchiid._version import __version__
+    from torchiid.core.device import resolve_device
+    from torchiid.core.exceptions import ParameterError
+    from torchiid.io import load_image, load_mask, save_image
+    from torchiid.io.layers import OutputSet, check_output_folder, write_layers
+
     op = args.operation
     needs_mask, needs_stage1 = OPERATIONS[op]
     params = params_from_args(args)
@@ -147,94 +258,32 @@ def run_edit(args: argparse.Namespace) -> int:
         edit.parse_colour(args.tint)
     if args.colour is not None:
         edit.parse_colour(args.colour)
-    loaded = load_image(args.input, linear=args.linear)
-    image = loaded.image
+    image = load_image(args.input, linear=args.linear).image
     stem = args.input.stem
-    shape = tuple(image.shape[-2:])
     mask = None
     if args.mask is not None:
-        mask = load_mask(args.mask, shape)[None]
-    texture = (
-        load_image(args.texture, linear=args.linear, min_side=1).image if args.texture else None
-    )
-
+        mask = load_mask(args.mask, tuple(image.shape[-2:]))[None].to(device)
+    texture = None
+    if args.texture is not None:
+        texture = load_image(args.texture, linear=args.linear, min_side=1).image.to(device)
     tag = f"{stem}-{op}"
-    names = [f"{tag}.png", f"{tag}.exr", f"{tag}-info.json"]
-    layer_names = {
-        "merge": ["reflectance", "shading", "C"],
-        "illumination-colour": ["shading"],
-        "illumination-intensity": ["shading"],
-        "soften-shadows": ["shading"],
-    }.get(op, ["reflectance"])
-    for layer in layer_names:
-        names += [f"{tag}-{layer}.png", f"{tag}-{layer}.exr"]
     decomposed = args.from_dir is None
-    if decomposed:
-        names += layer_file_names(stem, save_npy=False, save_confidence=False)
-        names += [f"{stem}-sigma.exr", f"{stem}-rho.exr"]
-    for name in names:
-        target = out / name
-        if target.is_dir() and not target.is_symlink():
-            raise OutputError(f"{target}: is a folder; cannot replace it by an output")
-        if os.path.lexists(target) and not args.overwrite:
-            raise OutputError(f"{target} exists; pass --overwrite to replace it")
+    _check_outputs(out, _output_names(args, stem, tag, decomposed), args.overwrite)
 
     t0 = time.perf_counter()
     batch = image[None].to(device)
     if decomposed:
-        from torchiid.model import decompose
-
-        result = decompose(batch, params, return_stage1=True)
+        result = _decompose(args, batch, params)
         r, s, sigma, rho = result.reflectance, result.shading, result.sigma, result.rho
     else:
-        r, s, sigma, rho = _load_saved(args.from_dir, stem, shape, needs_stage1)
-        r, s = r.to(device), s.to(device)
-        sigma = None if sigma is None else sigma.to(device)
-        rho = None if rho is None else rho.to(device)
+        saved = _load_saved(args.from_dir, stem, image, needs_stage1)
+        r, s, sigma, rho = (None if x is None else x.to(device) for x in saved)
     seconds_decompose = time.perf_counter() - t0
-    mask_d = None if mask is None else mask.to(device)
-
-    merged = None
-    if sigma is not None and rho is not None and (op == "merge" or not args.no_merge):
-        merged = edit.merge(batch, r, s, sigma, rho, blur=args.blur)
-    er, es = (merged.reflectance, merged.shading) if merged is not None else (r, s)
-    layers: dict[str, torch.Tensor] = {}
-    if op == "merge":
-        result_img = er * es
-        layers = {"reflectance": er, "shading": es, "C": merged.c}
-    elif op == "illumination-colour":
-        strength = 1.0 if args.strength is None else args.strength
-        result_img, new_s = edit.illumination_colour(
-            er, es, args.tint, strength, percentile=args.percentile, radius=args.radius
-        )
-        layers = {"shading": new_s}
-    elif op == "illumination-intensity":
-        strength = 0.5 if args.strength is None else args.strength
-        result_img, new_s = edit.illumination_intensity(
-            batch, r, s, sigma, rho, strength, combine=args.combine, blur=args.blur, merged=merged
-        )
-        layers = {"shading": new_s}
-    elif op == "remove-texture":
-        result_img, new_r = edit.remove_texture(er, es, mask_d, flatten=args.flatten)
-        layers = {"reflectance": new_r}
-    elif op == "replace-albedo":
-        result_img, new_r = edit.replace_albedo(
-            er, es, mask_d, texture.to(device), fit=args.fit, scale=args.scale
-        )
-        layers = {"reflectance": new_r}
-    elif op == "recolour":
-        result_img, new_r = edit.recolour(
-            er, es, mask_d, hue=args.hue, chroma=args.chroma, colour=args.colour
-        )
-        layers = {"reflectance": new_r}
-    else:
-        result_img, new_s = edit.soften_shadows(
-            er, es, args.amount, mask=mask_d, feather=args.feather
-        )
-        layers = {"shading": new_s}
+    result_img, layers, merged = _apply(args, batch, r, s, sigma, rho, mask, texture)
 
     white = float(edit._white(s).flatten()[0])
     info = {
+        "torchiid_version": __version__,
         "input": str(args.input),
         "operation": op,
         "from": None if args.from_dir is None else str(args.from_dir),
@@ -242,7 +291,7 @@ def run_edit(args: argparse.Namespace) -> int:
         "options": {
             k: (str(v) if isinstance(v, Path) else v)
             for k, v in sorted(vars(args).items())
-            if k not in ("command", "operation", "input", "output", "verbose")
+            if k not in ("command", "operation", "input", "output", "verbose", "quiet")
         },
         "shading_white": white,
         "seconds_decompose": round(seconds_decompose, 3),
@@ -259,7 +308,8 @@ def run_edit(args: argparse.Namespace) -> int:
             tx.write(f"{tag}-{name}.exr", lambda p, v=x: save_image(p, v, "exr"))
         text = json.dumps(info, indent=2, allow_nan=False) + "\n"
         tx.write(f"{tag}-info.json", lambda p: p.write_text(text, encoding="utf-8"))
-        if decomposed:
+        if decomposed:  # the files of `torchiid decompose`, for later `--from`
+            sg = sigma[0].cpu().float()
             write_layers(
                 out,
                 stem,
@@ -267,13 +317,18 @@ def run_edit(args: argparse.Namespace) -> int:
                 r[0].cpu(),
                 s[0].cpu(),
                 shading_white=float(result.shading_white[0]),
-                info={"input": str(args.input), "method": "semantic", "written_by": "edit"},
+                info={
+                    "input": str(args.input),
+                    "method": "semantic",
+                    "written_by": "edit",
+                    "converged": result.converged,
+                    "solves": [str(x) for x in result.solves],
+                    "files": {f"{stem}-sigma.exr": "last Stage 1 shading sigma, float32 linear"},
+                },
                 params_json=params.to_json(),
                 output_set=tx,
             )
-            sg, rh = sigma[0].cpu().float(), rho[0].cpu().float()
             tx.write(f"{stem}-sigma.exr", lambda p: save_image(p, sg, "exr"))
-            tx.write(f"{stem}-rho.exr", lambda p: save_image(p, rh, "exr"))
         tx.commit()
-    print(f"{args.input} -> {out}/{tag}* ({time.perf_counter() - t0:.1f} s)", file=sys.stderr)
+    say(args, f"{args.input} -> {out}/{tag}* ({time.perf_counter() - t0:.1f} s)")
     return 0

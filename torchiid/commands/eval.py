@@ -12,15 +12,21 @@ import argparse
 import math
 import sys
 from pathlib import Path
-from typing import Any
 
-from tqdm import tqdm
+from torchiid.commands.common import add_parameter_options, params_from_args
 
-from torchiid.commands.decompose import add_parameter_options, params_from_args
-from torchiid.core.exceptions import ParameterError
-from torchiid.eval.runner import COUNT_COLUMNS, DATASETS, METHODS, METRICS, EvalRunner
+__all__ = ["DATASETS", "DESCRIPTION", "EPILOG", "METHODS", "add_arguments", "run"]
 
-__all__ = ["add_eval_parser", "run_eval", "METRICS"]
+#: the benchmark layouts and methods (:data:`torchiid.eval.scoring.DATASETS`,
+#: :data:`torchiid.eval.runner.METHODS`, named here so that ``--help`` needs no torch)
+DATASETS = ("iiw", "mit", "saw", "dense")
+METHODS = ("semantic", "retinex", "r=i", "s=i")
+
+DESCRIPTION = (
+    "Decompose every image of an evaluation dataset (or read an existing results folder) and "
+    "score it: WHDR (iiw), LMSE (mit), shading AP (saw), si-MSE / LMSE / DSSIM (dense). Prints "
+    "a per-image and mean table and writes results.csv and summary.json."
+)
 
 EPILOG = """\
 results folder (--results DIR): instead of running a method, read the layers of every
@@ -46,23 +52,11 @@ video (torchiid eval video FRAMES RESULTS [--flow DIR]): the warping error of La
 (2018) of the reflectance in RESULTS (frame-XXXXXX-* files of decompose-video, or
 <frame stem>-* of decompose) for every pair of consecutive frames: flow estimated on the
 frames (OpenCV DIS), non-occluded pixels by a forward-backward check, and with --flow the
-given flows; with -o, OUT/video-summary.json.
-
-exit status: 0 when every image was scored, 1 when some failed, 2 on a usage error."""
+given flows; with -o, OUT/video-summary.json."""
 
 
-def add_eval_parser(subparsers: Any) -> argparse.ArgumentParser:
-    """Add the ``eval`` subcommand to ``subparsers`` (from ``add_subparsers``)."""
-    p = subparsers.add_parser(
-        "eval",
-        help="score a method on IIW, MIT-Berkeley, SAW or a dense-GT folder",
-        description="Decompose every image of an evaluation dataset (or read an existing "
-        "results folder) and score it: WHDR (iiw), LMSE (mit), shading AP (saw), "
-        "si-MSE / LMSE / DSSIM (dense). Prints a per-image and mean table and "
-        "writes results.csv and summary.json.",
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``torchiid eval``."""
     p.add_argument("dataset", choices=[*DATASETS, "video"], help="which benchmark layout DIR has")
     p.add_argument("dir", type=Path, metavar="DIR", help="the dataset directory")
     p.add_argument(
@@ -85,12 +79,6 @@ def add_eval_parser(subparsers: Any) -> argparse.ArgumentParser:
         "reflectance = 1 (reference rows)",
     )
     add_parameter_options(p)
-    p.add_argument(
-        "--device",
-        default="auto",
-        choices=["auto", "cpu", "cuda"],
-        help="where to run (auto: CUDA when available)",
-    )
     p.add_argument(
         "--batch-size",
         type=int,
@@ -124,7 +112,6 @@ def add_eval_parser(subparsers: Any) -> argparse.ArgumentParser:
         action="store_true",
         help="discard existing results in the output folder and start over",
     )
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--delta", type=float, default=0.10, help="WHDR equality margin (iiw)")
     p.add_argument(
         "--flow",
@@ -156,7 +143,6 @@ def add_eval_parser(subparsers: Any) -> argparse.ArgumentParser:
         help="(video) values the warping error compares: sRGB (default, as Lai et al.) or "
         "linear, both in [0, 1]",
     )
-    return p
 
 
 # --------------------------------------------------------------------------- table
@@ -168,6 +154,8 @@ def _table(
     columns: list[str],
     means: dict[str, float | None],
 ) -> str:
+    from torchiid.eval.scoring import COUNT_COLUMNS
+
     width = max([len("mean"), len("id"), *(len(i) for i in ids)])
     cols = columns[1:]
     widths = [max(len(c), 10) for c in cols]
@@ -197,13 +185,18 @@ def _table(
 
 
 def _report_failure(sample_id: str, exc: Exception) -> None:
+    from tqdm import tqdm
+
     tqdm.write(f"torchiid: error: {sample_id}: {exc}", file=sys.stderr)
 
 
-def run_eval(args: argparse.Namespace) -> int:
-    """Run the ``eval`` subcommand; returns the exit status (1 if any image failed)."""
+def run(args: argparse.Namespace) -> int:
+    """Run ``torchiid eval``; returns the exit status (1 if any image failed)."""
+    from torchiid.core.exceptions import ParameterError
+    from torchiid.eval.runner import EvalRunner
+
     if args.dataset == "video":
-        from torchiid.commands.video import run_eval_video
+        from torchiid.commands.eval_video import run_eval_video
 
         return run_eval_video(args)
     if args.results_dir is not None:
@@ -245,7 +238,8 @@ def run_eval(args: argparse.Namespace) -> int:
         )
     if data["median_seconds"] is not None:
         print(f"median seconds per image: {data['median_seconds']:.3f}")
-    print(f"wrote {result.csv_path} and {result.summary_path}")
+    if not getattr(args, "quiet", False):
+        print(f"wrote {result.csv_path} and {result.summary_path}")
     if result.failures:
         print(
             f"torchiid: {len(result.failures)} of {len(result.ids)} image(s) failed",

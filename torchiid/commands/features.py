@@ -4,17 +4,37 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
-from torchiid.core.device import resolve_device
-from torchiid.core.exceptions import TorchiidError
-from torchiid.io import linear_to_srgb, load_image, save_uint8
-from torchiid.io.layers import OutputSet, check_output_folder
+__all__ = ["DESCRIPTION", "OUTPUTS", "add_arguments", "run"]
+
+DESCRIPTION = (
+    "Write the PCA image of the mid-level features g_i, proposal masks and the patch grid of "
+    "one photo, and print the time of every step."
+)
 
 OUTPUTS = ("gpca.png", "proposals.png", "patch-grid.png")
 
 
-def run_features(args: argparse.Namespace) -> int:
-    """Run the ``features`` subcommand; returns the exit status."""
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``torchiid features``."""
+    p.add_argument("input", type=Path, help="an image file")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output directory")
+    p.add_argument(
+        "--mode", default="shared", choices=["shared", "crop"], help="patch feature mode"
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    p.add_argument(
+        "--linear",
+        action="store_true",
+        help="8/16-bit input files hold linear values (default: sRGB-encoded)",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``torchiid features``; returns the exit status."""
+    from torchiid.core.device import resolve_device
+    from torchiid.core.exceptions import TorchiidError
     from torchiid.features.midlevel import midlevel_features
     from torchiid.features.patches import patch_features, patch_grid
     from torchiid.features.proposals import selective_search
@@ -24,6 +44,8 @@ def run_features(args: argparse.Namespace) -> int:
         pca_image,
         select_masks,
     )
+    from torchiid.io import linear_to_srgb, load_image, save_uint8
+    from torchiid.io.layers import OutputSet, check_output_folder
 
     device = resolve_device(args.device)
     out = args.output
@@ -81,6 +103,7 @@ def run_features(args: argparse.Namespace) -> int:
         print(f"{name:<{width}}  {sec:7.3f}")
     print(f"{'total':<{width}}  {sum(s for _, s in timings):7.3f}")
     print(f"features f_b: {tuple(feats.features.shape)}; g_i: {mid.num_proposals} proposals")
-    for t in targets:
-        print(f"wrote {t}")
+    if not getattr(args, "quiet", False):
+        for t in targets:
+            print(f"wrote {t}")
     return 0

@@ -8,38 +8,32 @@ import logging
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from torchiid.commands.decompose import add_parameter_options, params_from_args
-from torchiid.core.device import resolve_device
-from torchiid.core.exceptions import (
-    ImageError,
-    ParameterError,
-    TorchiidError,
-    describe_error,
-    one_line,
-)
-from torchiid.eval.results import load_layer
-from torchiid.eval.video import evaluate_video, frame_number, occlusion_index
-from torchiid.io import load_image, load_mask
-from torchiid.io.layers import OutputError, OutputSet, check_output_folder
-from torchiid.params import Parameters
-from torchiid.video.flow import FLOW_METHODS
-from torchiid.video.frames import list_images, open_frames
-from torchiid.video.temporal import DEFAULT_TEMPORAL_WEIGHT, VideoDecomposer, VideoOptions
-from torchiid.video.write import (
-    PARAMS_NAME,
-    PREVIEW_NAME,
-    PreviewWriter,
-    frame_file_names,
-    frame_stem,
-    write_frame,
-)
+from torchiid.commands.common import add_parameter_options, params_from_args
 
-__all__ = ["add_video_parser", "run_decompose_video", "options_from_args"]
+if TYPE_CHECKING:
+    from torchiid.params import Parameters
+    from torchiid.video.temporal import VideoDecomposer, VideoOptions
+    from torchiid.video.write import PreviewWriter
+
+__all__ = ["DESCRIPTION", "EPILOG", "add_arguments", "options_from_args", "run"]
 
 log = logging.getLogger("torchiid")
+
+DESCRIPTION = (
+    "Decompose a video file (needs PyAV: pip install 'torchiid[video]') or a folder of frames "
+    "(sorted by name) frame by frame, each frame tied to the previous one by optical flow: the "
+    "warped previous reflectance is the warm start of both stages and the target of a temporal "
+    "term, so the reflectance does not flicker."
+)
+
+#: ``--flow`` choices and default temporal weights (those of :mod:`torchiid.video`, named
+#: here so that ``--help`` needs no torch)
+FLOW_METHODS = ("dis", "farneback")
+DEFAULT_TEMPORAL_WEIGHT = {"l2": 4.0, "l1": 1.0}
 
 EPILOG = """\
 outputs: for frame i (1-based) frame-<i:06d>-reflectance.png, -shading.png, -preview.png,
@@ -52,24 +46,11 @@ existing outputs are kept unless --overwrite: a frame whose files exist is repor
 skipped (status 1), and its reflectance, read back from frame-*-reflectance-linear16.png,
 continues the temporal chain, so an interrupted run can be resumed with the same command. A
 rerun whose parameters or video options differ from the folder's video-params.json stops
-before any frame (status 2): pass --overwrite or choose another output folder.
-
-exit status: 0 every frame written, 1 some frames failed (each reported in one line), 2 usage
-or set-up error (nothing decomposed), 130 interrupted."""
+before any frame (status 2): pass --overwrite or choose another output folder."""
 
 
-def add_video_parser(subparsers: Any) -> argparse.ArgumentParser:
-    """Add the ``decompose-video`` subcommand to ``subparsers``."""
-    v = subparsers.add_parser(
-        "decompose-video",
-        help="split the frames of a video into reflectance and shading, temporally consistent",
-        description="Decompose a video file (needs PyAV: pip install 'torchiid[video]') or a "
-        "folder of frames (sorted by name) frame by frame, each frame tied to the previous one "
-        "by optical flow: the warped previous reflectance is the warm start of both stages and "
-        "the target of a temporal term, so the reflectance does not flicker.",
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+def add_arguments(v: argparse.ArgumentParser) -> None:
+    """The options of ``torchiid decompose-video``."""
     v.add_argument("input", type=Path, help="a video file or a folder of frames")
     v.add_argument("-o", "--output", type=Path, required=True, help="output directory")
     add_parameter_options(v)
@@ -121,23 +102,18 @@ def add_video_parser(subparsers: Any) -> argparse.ArgumentParser:
         "--save-npy", action="store_true", help="also write float32 linear .npy arrays per frame"
     )
     v.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    v.add_argument("--no-progress", action="store_true", help="no progress bar")
     v.add_argument(
         "--linear",
         action="store_true",
         help="8/16-bit frame files hold linear values (default: sRGB-encoded)",
     )
-    v.add_argument(
-        "--device",
-        default="auto",
-        choices=["auto", "cpu", "cuda"],
-        help="where to run (auto: CUDA when available)",
-    )
-    return v
 
 
 def options_from_args(args: argparse.Namespace) -> VideoOptions:
     """:class:`~torchiid.video.temporal.VideoOptions` from the command line."""
+    from torchiid.core.exceptions import ParameterError
+    from torchiid.video.temporal import VideoOptions
+
     if args.frame_by_frame:
         return VideoOptions.frame_by_frame()
     if args.temporal_weight is not None and not args.temporal_weight >= 0:
@@ -153,12 +129,17 @@ def options_from_args(args: argparse.Namespace) -> VideoOptions:
 
 def _error_message(where: str, exc: Exception) -> str:
     """One line naming the frame and the problem."""
+    from torchiid.core.exceptions import describe_error
+
     msg = describe_error(exc)
     return msg if where in msg else f"{where}: {msg}"
 
 
 def _params_json(params: Parameters, options: VideoOptions) -> str:
+    from torchiid._version import __version__
+
     data = {
+        "torchiid_version": __version__,
         "params": json.loads(params.to_json()),
         "video": {**options.__dict__, "temporal_weight": options.weight},
     }
@@ -183,6 +164,9 @@ def _check_same_settings(out: Path, params: Parameters, options: VideoOptions) -
     Raises:
         TorchiidError: ``video-params.json`` differs or cannot be read.
     """
+    from torchiid.core.exceptions import TorchiidError
+    from torchiid.video.write import PARAMS_NAME
+
     path = out / PARAMS_NAME
     if not os.path.lexists(path):
         return
@@ -195,8 +179,9 @@ def _check_same_settings(out: Path, params: Parameters, options: VideoOptions) -
         ) from None
     new = json.loads(_params_json(params, options))
     a, b = _flatten(old), _flatten(new)
-    same = {"params.torchiid_version"}  # the version that wrote the file, not a setting
-    changed = sorted(k for k in (a.keys() | b.keys()) - same if a.get(k, None) != b.get(k, None))
+    # the version that wrote the files is no setting: an upgrade may resume the sequence
+    keys = {k for k in a.keys() | b.keys() if not k.endswith("torchiid_version")}
+    changed = sorted(k for k in keys if a.get(k, None) != b.get(k, None))
     if changed:
         shown = ", ".join(f"{k} {a.get(k)!r} -> {b.get(k)!r}" for k in changed[:3])
         more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
@@ -207,6 +192,9 @@ def _check_same_settings(out: Path, params: Parameters, options: VideoOptions) -
 
 def _resume(video: VideoDecomposer, out: Path, stem: str, image, mask) -> bool:
     """Continue the chain from a frame written earlier; False when its files cannot be read."""
+    from torchiid.core.exceptions import TorchiidError
+    from torchiid.io import load_image
+
     try:
         refl = load_image(out / f"{stem}-reflectance-linear16.png", linear=True, min_side=1)
         white = json.loads((out / f"{stem}-info.json").read_text(encoding="utf-8"))
@@ -219,9 +207,24 @@ def _resume(video: VideoDecomposer, out: Path, stem: str, image, mask) -> bool:
         return False
 
 
-def run_decompose_video(args: argparse.Namespace) -> int:
-    """Run ``decompose-video``; returns the exit status (see the command's epilog)."""
+def run(args: argparse.Namespace) -> int:
+    """Run ``torchiid decompose-video``; returns the exit status (see the command's help)."""
     from tqdm import tqdm
+
+    from torchiid.core.device import resolve_device
+    from torchiid.core.exceptions import ImageError, ParameterError, TorchiidError, one_line
+    from torchiid.io import load_mask
+    from torchiid.io.layers import OutputError, OutputSet, check_output_folder
+    from torchiid.video.frames import list_images, open_frames
+    from torchiid.video.temporal import VideoDecomposer
+    from torchiid.video.write import (
+        PARAMS_NAME,
+        PREVIEW_NAME,
+        PreviewWriter,
+        frame_file_names,
+        frame_stem,
+        write_frame,
+    )
 
     params = params_from_args(args)
     options = options_from_args(args)
@@ -245,7 +248,7 @@ def run_decompose_video(args: argparse.Namespace) -> int:
             )
     show = not args.no_progress
 
-    def say(message: str) -> None:
+    def tell(message: str) -> None:  # above the progress bar while it shows
         if show:
             tqdm.write(message, file=sys.stderr)
         else:
@@ -257,7 +260,7 @@ def run_decompose_video(args: argparse.Namespace) -> int:
         target = out / PREVIEW_NAME
         if os.path.lexists(target) and not args.overwrite:
             failures += 1
-            say(f"torchiid: error: {target} exists; pass --overwrite to replace it")
+            tell(f"torchiid: error: {target} exists; pass --overwrite to replace it")
         else:
             preview = PreviewWriter(target, args.fps or source.fps or 24.0, overwrite=True)
     video = VideoDecomposer(params, options)
@@ -295,9 +298,12 @@ def run_decompose_video(args: argparse.Namespace) -> int:
                         _preview_from_files(preview, out, stem, image)
                     raise OutputError(f"{existing[0]} exists; pass --overwrite to replace it")
                 t0 = time.perf_counter()
-                frame = video(image.to(device), None if mask is None else mask.to(device))
+                frame = _decompose_frame(
+                    video, image.to(device), None if mask is None else mask.to(device)
+                )
                 seconds = time.perf_counter() - t0
                 d = frame.decomposition
+                _solver_lines(args, where, d, stem, tell)
                 white = float(d.shading_white[0])
                 info = {
                     "input": str(args.input),
@@ -339,7 +345,7 @@ def run_decompose_video(args: argparse.Namespace) -> int:
                     log.info(done)
             except Exception as exc:  # noqa: BLE001 - one bad frame must not stop the video
                 failures, tx = failures + 1, None
-                say(f"torchiid: error: {_error_message(where, exc)}")
+                tell(f"torchiid: error: {_error_message(where, exc)}")
                 if not isinstance(exc, TorchiidError):
                     log.info("the error above came from here:", exc_info=exc)
         if preview is not None:
@@ -347,7 +353,7 @@ def run_decompose_video(args: argparse.Namespace) -> int:
                 preview.commit()
             except TorchiidError as exc:
                 failures += 1
-                say(f"torchiid: error: {one_line(str(exc))}")
+                tell(f"torchiid: error: {one_line(str(exc))}")
     except KeyboardInterrupt:
         bar.close()
         if preview is not None:
@@ -363,7 +369,7 @@ def run_decompose_video(args: argparse.Namespace) -> int:
     except TorchiidError as exc:  # the video stream itself broke: nothing more to read
         bar.close()
         failures += 1
-        say(f"torchiid: error: {one_line(str(exc))}")
+        tell(f"torchiid: error: {one_line(str(exc))}")
         if preview is not None:
             preview.discard()
     finally:
@@ -377,11 +383,34 @@ def run_decompose_video(args: argparse.Namespace) -> int:
     return 0
 
 
+def _decompose_frame(video: VideoDecomposer, image: Any, mask: Any) -> Any:
+    """One frame; a capped solve is reported by :func:`_solver_lines`, not as a warning."""
+    from torchiid.core.exceptions import ConvergenceWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        return video(image, mask)
+
+
+def _solver_lines(args: argparse.Namespace, where: str, d: Any, stem: str, tell) -> None:
+    """The frame's note on solves that stopped early (``-v``: also the preset's caps)."""
+    from torchiid.collection.job import solver_note
+
+    note, detail = solver_note(where, list(d.solves), d.params.converge, f"{stem}-info.json")
+    if note and not getattr(args, "quiet", False):
+        tell(f"torchiid: note: {note}")
+    if detail and getattr(args, "verbose", False):
+        tell(f"torchiid: {detail}")
+
+
 def _write_params(out: Path, params: Parameters, options: VideoOptions, overwrite: bool) -> bool:
     """Write ``video-params.json``; an existing one is kept without ``overwrite``.
 
     (It holds the same settings: :func:`_check_same_settings` stopped the run otherwise.)
     """
+    from torchiid.io.layers import OutputSet
+    from torchiid.video.write import PARAMS_NAME
+
     target = out / PARAMS_NAME
     if os.path.lexists(target) and not overwrite:
         return True
@@ -394,175 +423,8 @@ def _write_params(out: Path, params: Parameters, options: VideoOptions, overwrit
 
 def _preview_from_files(preview: PreviewWriter, out: Path, stem: str, image) -> None:
     """Add a frame written by an earlier run to the preview, from its 8-bit files."""
+    from torchiid.io import load_image
+
     refl = load_image(out / f"{stem}-reflectance.png", min_side=1).image
     shading = load_image(out / f"{stem}-shading.png", min_side=1).image[:1]
     preview.add(image, refl, shading)
-
-
-# --------------------------------------------------------------------------- eval video
-
-
-def _load_reflectance(results: Path, index: int, name: str):
-    """Frame ``index``'s reflectance from a results folder.
-
-    ``frame-XXXXXX-*`` (the files of ``decompose-video``), else ``<frame file stem>-*``
-    (``decompose`` run on the frames).
-    """
-    try:
-        return load_layer(results, frame_stem(index), "reflectance")
-    except TorchiidError as first:
-        stem = Path(name).stem
-        if " frame " in name:  # a video's frame has no file stem
-            raise first from None
-        try:
-            return load_layer(results, stem, "reflectance")
-        except TorchiidError:
-            raise TorchiidError(
-                f"{results}: no reflectance of frame {index + 1} ({name}): neither "
-                f"{frame_stem(index)}-* nor {stem}-*"
-            ) from None
-
-
-def run_eval_video(args: argparse.Namespace) -> int:
-    """``torchiid eval video FRAMES RESULTS [--flow DIR [--occlusions DIR]]``: exit status."""
-    from tqdm import tqdm
-
-    if args.results_dir is None:
-        raise ParameterError(
-            "eval video needs two folders: the input frames (or video file) and the results "
-            "of decompose-video"
-        )
-    results: Path = args.results_dir
-    if not results.is_dir():
-        raise TorchiidError(f"{results}: no such results folder")
-    if args.flow is not None and not args.flow.is_dir():
-        raise TorchiidError(f"{args.flow}: no such flow folder")
-    occlusions = None
-    if args.occlusions is not None:
-        if args.flow is None:
-            raise ParameterError("--occlusions marks the pixels of the --flow files: give --flow")
-        if not args.occlusions.is_dir():
-            raise TorchiidError(f"{args.occlusions}: no such occlusions folder")
-        occlusions = occlusion_index(args.occlusions)  # a bad folder stops before any pair
-    summary_path = None
-    if args.output is not None:
-        check_output_folder(args.output)
-        summary_path = args.output / "video-summary.json"
-        if os.path.lexists(summary_path) and not args.overwrite:
-            raise OutputError(f"{summary_path} exists; pass --overwrite to replace it")
-    source = open_frames(args.dir)
-    show = not args.no_progress
-    rows, failures, prev = [], 0, None
-    bar = tqdm(total=source.count, desc="frames", unit="frame", disable=not show, file=sys.stderr)
-    try:
-        for item in source:
-            bar.update(1)
-            try:
-                if item.error is not None:
-                    raise item.error
-                refl = _load_reflectance(results, item.index, item.name)
-                if tuple(refl.shape[-2:]) != tuple(item.image.shape[-2:]):
-                    raise ImageError(
-                        f"{results}: the reflectance of frame {item.index + 1} is "
-                        f"{refl.shape[-1]}x{refl.shape[-2]}, the frame "
-                        f"{item.image.shape[-1]}x{item.image.shape[-2]}"
-                    )
-                # a folder's frame is numbered by its file name, a video's by its position
-                number = item.index + 1
-                if source.kind == "folder":
-                    number = frame_number(item.name, number)
-                current = (item.image, refl, item.name, number)
-            except Exception as exc:  # noqa: BLE001 - the other pairs go on
-                failures += 1
-                bar.write(f"torchiid: error: {_error_message(item.name, exc)}", file=sys.stderr)
-                prev = None
-                continue
-            if prev is not None:
-                try:
-                    rows += evaluate_video(
-                        [prev[0], current[0]],
-                        [prev[1], current[1]],
-                        [prev[2], current[2]],
-                        flow_dir=args.flow,
-                        space=args.space,
-                        method=args.eval_flow,
-                        occlusions=occlusions,
-                        numbers=[prev[3], current[3]],
-                    )
-                except TorchiidError as exc:
-                    failures += 1
-                    bar.write(f"torchiid: error: {one_line(str(exc))}", file=sys.stderr)
-            prev = current
-    finally:
-        source.close()
-        bar.close()
-    if not rows:
-        print("torchiid: error: no pair of consecutive frames could be scored", file=sys.stderr)
-        return 1 if failures else 2
-    print(_video_table(rows, args.space, args.eval_flow))
-    if summary_path is not None:
-        _write_summary(summary_path, rows, args)
-        print(f"wrote {summary_path}")
-    if failures:
-        print(f"torchiid: {failures} frame(s) or pair(s) failed", file=sys.stderr)
-        return 1
-    return 0
-
-
-def _mean(values) -> float | None:
-    vals = [v for v in values if v is not None and v == v]
-    return sum(vals) / len(vals) if vals else None
-
-
-def _video_table(rows, space: str, eval_flow: str = "dis") -> str:
-    def cell(v, digits=5) -> str:
-        return f"{'-':>12}" if v is None or v != v else f"{v:>12.{digits}f}"
-
-    width = max(len("mean"), *(len(f"{r.first} -> {r.second}") for r in rows))
-    head = (
-        f"{'pair':<{width}}  {'WE (est.)':>12}  {'input WE':>12}  {'valid':>12}  "
-        f"{'WE (given)':>12}  {'input given':>12}  {'valid given':>12}"
-    )
-    lines = [
-        f"warping error of the reflectance ({space} values in [0, 1]; est.: {eval_flow} flow "
-        "estimated on the frames, given: the --flow files)",
-        head,
-        "-" * len(head),
-    ]
-    for r in rows:
-        lines.append(
-            f"{r.first + ' -> ' + r.second:<{width}}  {cell(r.estimated)}  "
-            f"{cell(r.input_estimated)}  {cell(r.estimated_valid, 3)}  {cell(r.given)}  "
-            f"{cell(r.input_given)}  {cell(r.given_valid, 3)}"
-        )
-    lines.append("-" * len(head))
-    lines.append(
-        f"{'mean':<{width}}  {cell(_mean(r.estimated for r in rows))}  "
-        f"{cell(_mean(r.input_estimated for r in rows))}  "
-        f"{cell(_mean(r.estimated_valid for r in rows), 3)}  "
-        f"{cell(_mean(r.given for r in rows))}  {cell(_mean(r.input_given for r in rows))}  "
-        f"{cell(_mean(r.given_valid for r in rows), 3)}"
-    )
-    return "\n".join(lines)
-
-
-def _write_summary(path: Path, rows, args: argparse.Namespace) -> None:
-    data = {
-        "frames": str(args.dir),
-        "results": str(args.results_dir),
-        "flow": None if args.flow is None else str(args.flow),
-        "occlusions": None if args.occlusions is None else str(args.occlusions),
-        "eval_flow": args.eval_flow,
-        "space": args.space,
-        "mean": {
-            "estimated": _mean(r.estimated for r in rows),
-            "input_estimated": _mean(r.input_estimated for r in rows),
-            "given": _mean(r.given for r in rows),
-            "input_given": _mean(r.input_given for r in rows),
-        },
-        "pairs": [r.__dict__ for r in rows],
-    }
-    text = json.dumps(data, indent=2, allow_nan=False, default=str) + "\n"
-    with OutputSet(path.parent, overwrite=True, label="video-summary") as tx:
-        tx.write(path.name, lambda p: p.write_text(text, encoding="utf-8"))
-        tx.commit()

@@ -46,6 +46,7 @@ import torch
 from tqdm import tqdm
 
 import torchiid.model
+from torchiid._version import __version__
 from torchiid.baselines.result import BaselineResult
 from torchiid.baselines.retinex import color_retinex
 from torchiid.baselines.trivial import reflectance_is_image, shading_is_image
@@ -523,6 +524,7 @@ class _Run:
             vals = [rows[i][c] for i in scored if math.isfinite(rows[i][c])]
             means[c] = _finite_or_none(statistics.fmean(vals)) if vals else None
         data = {
+            "torchiid_version": __version__,
             **self.settings,
             "status": status,
             "started": self.started,

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchiid._version import __version__
 from torchiid.core.check import check_image
 from torchiid.core.exceptions import ModelError
 from torchiid.features.backbone import (
@@ -140,6 +141,7 @@ def export_feature_extractor(path: str | Path, opset: int = OPSET) -> dict:
         ],
         "source_weights": {"name": weights_path().name, "sha256": weights_sha256()},
         "exporter": {"torch": torch.__version__.split("+")[0], "dynamo": False},
+        "torchiid_version": __version__,
     }
 
 

@@ -17,13 +17,16 @@ file                                      what it is
 ``photo-shading.exr``                     ``S``, 32-bit float **linear** OpenEXR (one channel
                                           ``Y``), unclipped, values may exceed 1
 ``photo-info.json``                       sizes, ``shading_white``, ``albedo_excess``, the
-                                          scale convention and what each file is
+                                          scale convention, what each file is and the
+                                          ``torchiid_version`` that wrote them
 ``photo-params.json``                     every parameter used (the format ``--params`` reads)
 ``photo-reflectance.npy`` / ``-shading``  with ``save_npy``: float32 linear ``(H, W, 3)`` and
                                           ``(H, W)``, ``R · S == I`` to float precision
 ``photo-confidence.png``                  with ``save_confidence``: 8-bit gray, 255 where the
                                           pixel's colour is trusted, 0 where it is dark or
                                           clipped (no information, shading continued smoothly)
+``photo-sigma.exr``                       Stage 1's last shading ``σ``, float32 linear OpenEXR
+                                          (``decompose`` adds it to the set; ``ρ = I / σ``)
 ========================================  ====================================================
 
 OpenEXR rather than a float TIFF for the shading: it is the interchange format for linear HDR
@@ -74,6 +77,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from torchiid._version import __version__
 from torchiid.core.colour import srgb8_encode_lut
 from torchiid.core.exceptions import TorchiidError
 from torchiid.io.image import encode_codes, save_encoded, save_image
@@ -512,6 +516,7 @@ def write_layers(
         if "confidence.png" in encoded:
             png("confidence.png")
     record = {
+        "torchiid_version": __version__,  # so a reader can interpret or migrate the files
         "size": [big_w, big_h],
         "shading_white": white,
         "convention": (

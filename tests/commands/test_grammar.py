@@ -1,0 +1,372 @@
+"""One grammar for every command: version, help, run options, exit statuses, verbosity.
+
+Also what makes the command line start at once: ``torchiid --help``, ``--version`` and every
+``torchiid COMMAND --help`` import neither torch nor the other heavy libraries (checked in a
+fresh process: a property, not a timing; ``tools/bench_startup.py`` times it).
+"""
+
+import ast
+import importlib
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import pytest
+from skimage import data
+
+import torchiid
+from torchiid.cli import COMMANDS, build_parser, main
+from torchiid.core.exceptions import TorchiidError
+
+ROOT = Path(__file__).resolve().parents[2]
+FAST = ["--iterations", "1", "--no-progress"]
+HEAVY = ("torch", "numba", "cv2", "kornia", "skimage", "onnxruntime", "av", "numpy", "scipy", "PIL")
+LONG = [c for c in COMMANDS if c.runs_long]
+
+
+@pytest.fixture(scope="module")
+def photo(tmp_path_factory):
+    d = tmp_path_factory.mktemp("photo")
+    cat = cv2.resize(data.chelsea(), (96, 72), interpolation=cv2.INTER_AREA)
+    cv2.imwrite(str(d / "cat.png"), cat[..., ::-1])
+    (d / "frames").mkdir()
+    cv2.imwrite(str(d / "frames" / "f1.png"), cat[..., ::-1])
+    return d
+
+
+# ----------------------------------------------------------------------------- version
+
+
+def test_the_version_is_written_once_and_is_at_least_1_0_0(capsys):
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert "version" not in project["project"] and "version" in project["project"]["dynamic"]
+    source = ROOT / project["tool"]["hatch"]["version"]["path"]
+    assert re.search(r'__version__ = "([^"]+)"', source.read_text())[1] == torchiid.__version__
+    major, minor, patch = torchiid.__version__.split(".")
+    assert (int(major), int(minor), int(patch)) >= (1, 0, 0)  # semantic versioning
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0
+    assert capsys.readouterr().out.strip() == f"torchiid {torchiid.__version__}"
+
+
+def test_files_record_the_version_that_wrote_them(photo, tmp_path):
+    out = tmp_path / "out"
+    assert main(["decompose", str(photo / "cat.png"), "-o", str(out), *FAST]) == 0
+    info = json.loads((out / "cat-info.json").read_text())
+    line = json.loads((out / "manifest.jsonl").read_text().splitlines()[-1])
+    assert info["torchiid_version"] == line["torchiid_version"] == torchiid.__version__
+    argv = ["decompose", str(photo / "cat.png"), "--method", "retinex", "--no-progress"]
+    assert main([*argv, "-o", str(tmp_path / "retinex")]) == 0
+    params = json.loads((tmp_path / "retinex" / "cat-params.json").read_text())
+    assert params["torchiid_version"] == torchiid.__version__
+
+
+def test_the_version_alone_does_not_change_the_parameters_hash(tmp_path, monkeypatch):
+    from torchiid.collection import RunSettings, params_hash
+    from torchiid.params import Parameters
+
+    settings = RunSettings(out=tmp_path, params=Parameters())
+    before = params_hash(settings)
+    plain = Parameters.to_json
+
+    def versioned(self):
+        return json.dumps({**json.loads(plain(self)), "torchiid_version": "9.9.9"})
+
+    monkeypatch.setattr(Parameters, "to_json", versioned)
+    assert params_hash(settings) == before
+
+
+# ----------------------------------------------------------------------------- start-up
+
+
+def test_help_and_version_import_nothing_heavy():
+    """Every help page and --version, each in the same fresh process, loads no heavy module."""
+    pages = [["--help"], ["--version"], *([c.name, "--help"] for c in COMMANDS)]
+    code = f"""
+import sys
+from torchiid.cli import main
+for argv in {pages!r}:
+    try:
+        main(argv)
+    except SystemExit as stop:
+        assert stop.code == 0, (argv, stop.code)
+    loaded = [m for m in {HEAVY!r} if m in sys.modules]
+    assert not loaded, (argv, loaded)
+print("ok")
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip().endswith("ok")
+
+
+def test_import_torchiid_is_lazy_and_every_public_name_resolves():
+    code = """
+import sys
+import torchiid
+assert "torch" not in sys.modules
+from torchiid import Parameters, decompose, edit, TorchiidError
+import torchiid.model, torchiid.params
+assert decompose is torchiid.model.decompose and Parameters is torchiid.params.Parameters
+assert edit.merge and TorchiidError.__module__ == "torchiid.core.exceptions"
+missing = [n for n in torchiid.__all__ if getattr(torchiid, n, None) is None]
+assert not missing, missing
+assert set(torchiid.__all__) <= set(dir(torchiid))
+print("ok")
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    with pytest.raises(AttributeError, match="no attribute 'nothing_here'"):
+        torchiid.nothing_here  # noqa: B018
+
+
+def test_static_tools_see_every_public_name():
+    """``__all__`` is a literal and each name is imported under ``if TYPE_CHECKING:``."""
+    tree = ast.parse((ROOT / "torchiid" / "__init__.py").read_text())
+    listed = typed = None
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and node.targets[0].id == "__all__":
+            listed = set(ast.literal_eval(node.value))
+        if isinstance(node, ast.If) and getattr(node.test, "id", "") == "TYPE_CHECKING":
+            typed = {a.asname or a.name for i in node.body for a in i.names}
+    assert listed and listed == typed == set(torchiid.__all__)
+
+
+def test_choices_named_for_help_are_the_library_s():
+    from torchiid import edit
+    from torchiid.commands import edit as edit_command
+    from torchiid.commands import eval as eval_command
+    from torchiid.commands import video as video_command
+    from torchiid.eval.runner import METHODS
+    from torchiid.eval.scoring import DATASETS
+    from torchiid.video.flow import FLOW_METHODS
+    from torchiid.video.temporal import DEFAULT_TEMPORAL_WEIGHT
+
+    assert edit_command.COMBINE == edit.COMBINE
+    assert eval_command.DATASETS == DATASETS and eval_command.METHODS == METHODS
+    assert video_command.FLOW_METHODS == FLOW_METHODS
+    assert video_command.DEFAULT_TEMPORAL_WEIGHT == DEFAULT_TEMPORAL_WEIGHT
+
+
+# ----------------------------------------------------------------------------- grammar
+
+
+def test_help_lists_every_command_on_one_line(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = capsys.readouterr().out
+    for command in COMMANDS:
+        pattern = rf"\s+{re.escape(command.name)}\s+{re.escape(command.help)}"
+        assert len([x for x in text.splitlines() if re.fullmatch(pattern, x)]) == 1, command
+    assert "exit status: 0 done; 1 failed" in text and "130 interrupted" in text
+
+
+# the smallest command line of each command that runs long
+MINIMAL = {
+    "decompose": ["x.png", "-o", "out"],
+    "decompose-video": ["frames", "-o", "out"],
+    "edit": ["merge", "x.png", "-o", "out"],
+    "eval": ["mit", "data"],
+    "features": ["x.png", "-o", "out"],
+}
+
+
+@pytest.mark.parametrize("command", LONG, ids=lambda c: c.name)
+def test_every_long_command_takes_the_run_options(command):
+    parser = build_parser()
+    base = [command.name, *MINIMAL[command.name]]
+    args = parser.parse_args([*base, "--no-progress", "--device", "cpu", "--threads", "3", "-q"])
+    assert (args.no_progress, args.device, args.threads, args.quiet) == (True, "cpu", 3, True)
+    assert parser.parse_args(base).threads is None
+    assert parser.parse_args([*base, "-v"]).verbose and parser.parse_args(["-v", *base]).verbose
+    assert parser.parse_args(["--quiet", *base]).quiet
+    assert not parser.parse_args(base).verbose
+
+
+@pytest.mark.parametrize("argv", [["--threads", "0"], ["--threads", "two"], ["--device", "tpu"]])
+def test_bad_run_options_are_usage_errors(argv, capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["decompose", "x.png", "-o", "out", *argv])
+    assert stop.value.code == 2
+    assert "torchiid decompose: error: argument" in capsys.readouterr().err
+
+
+def test_quiet_and_verbose_exclude_each_other(capsys):
+    base = ["decompose", "x.png", "-o", "out"]
+    for argv in (["-q", "-v", *base], [*base, "-q", "-v"], ["-q", *base, "-v"]):
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        assert stop.value.code == 2
+        assert re.search(r"not allowed with|exclude each other", capsys.readouterr().err)
+
+
+# ----------------------------------------------------------------------------- exit statuses
+
+
+def _argv(command: str, photo: Path, out: Path) -> list[str]:
+    return {
+        "decompose": ["decompose", str(photo / "cat.png"), "-o", str(out)],
+        "decompose-video": ["decompose-video", str(photo / "frames"), "-o", str(out)],
+        "edit": ["edit", "merge", str(photo / "cat.png"), "-o", str(out)],
+        "eval": ["eval", "mit", str(photo), "-o", str(out)],
+        "features": ["features", str(photo / "cat.png"), "-o", str(out)],
+    }[command]
+
+
+def _fail_early(monkeypatch, command: str, exc: BaseException) -> None:
+    """Make ``command`` raise ``exc`` as its work starts."""
+
+    def fail(*args, **kwargs):
+        raise exc
+
+    if command == "features":
+        import torchiid.core.device
+
+        monkeypatch.setattr(torchiid.core.device, "resolve_device", fail)
+    else:
+        module = next(c.module for c in COMMANDS if c.name == command)
+        monkeypatch.setattr(f"torchiid.commands.{module}.params_from_args", fail)
+
+
+@pytest.mark.parametrize("command", [c.name for c in LONG])
+@pytest.mark.parametrize(
+    ("exc", "status", "line"),
+    [
+        (KeyboardInterrupt(), 130, "torchiid: interrupted"),
+        (TypeError("a bug"), 1, "torchiid: error: internal error (TypeError: a bug); rerun"),
+        (TorchiidError("a bad setting"), 2, "torchiid: error: a bad setting"),
+    ],
+    ids=["interrupted", "internal-error", "set-up-error"],
+)
+def test_exit_statuses_are_the_same_for_every_command(
+    photo, tmp_path, monkeypatch, capsys, command, exc, status, line
+):
+    _fail_early(monkeypatch, command, exc)
+    assert main([*_argv(command, photo, tmp_path / "out"), "--no-progress"]) == status
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(line)
+    assert "Traceback" not in err[0] and not (tmp_path / "out").exists()
+
+
+def test_usage_errors_exit_with_2_for_every_command(photo, tmp_path, capsys):
+    for command in LONG:
+        with pytest.raises(SystemExit) as stop:
+            main([*_argv(command.name, photo, tmp_path / "out"), "--no-such-option"])
+        assert stop.value.code == 2, command.name
+        assert "unrecognized arguments: --no-such-option" in capsys.readouterr().err
+
+
+def test_verbose_adds_the_traceback_of_an_internal_error(photo, tmp_path):
+    code = """
+import sys
+import torchiid.commands.decompose as command
+from torchiid.cli import main
+def bug(args):
+    raise TypeError("a bug")
+command.params_from_args = bug
+sys.exit(main(sys.argv[1:]))
+"""
+    argv = [*_argv("decompose", photo, tmp_path / "out"), "--no-progress"]
+    quiet = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True)
+    loud = subprocess.run([sys.executable, "-c", code, *argv, "-v"], capture_output=True, text=True)
+    assert quiet.returncode == loud.returncode == 1
+    assert "Traceback" not in quiet.stderr and "internal error (TypeError: a bug)" in quiet.stderr
+    assert "Traceback" in loud.stderr and "in bug\nTypeError: a bug" in loud.stderr
+
+
+def test_threads_are_set_for_the_run_and_restored(photo, tmp_path, monkeypatch):
+    import os
+
+    import torch
+
+    before, seen = torch.get_num_threads(), {}
+
+    def record(args):
+        seen["torch"], seen["omp"] = torch.get_num_threads(), os.environ.get("OMP_NUM_THREADS")
+        raise TorchiidError("stop here")
+
+    monkeypatch.setattr("torchiid.commands.edit.params_from_args", record)
+    omp = os.environ.get("OMP_NUM_THREADS")
+    argv = [*_argv("edit", photo, tmp_path / "out"), "--threads", "3"]
+    assert main(argv) == 2
+    assert seen == {"torch": 3, "omp": "3"}
+    assert torch.get_num_threads() == before and os.environ.get("OMP_NUM_THREADS") == omp
+
+
+# ----------------------------------------------------------------------------- verbosity
+
+
+def test_the_default_preset_s_caps_are_no_news(photo, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["decompose", str(photo / "cat.png"), "-o", str(out), *FAST]) == 0
+    err = capsys.readouterr().err
+    assert "tolerance" not in err and err.count("\n") == 1  # the summary line alone
+    info = json.loads((out / "cat-info.json").read_text())
+    assert info["converged"] is False and len(info["solves"]) == 2  # recorded there
+    assert main(["decompose", str(photo / "cat.png"), "-o", str(tmp_path / "v"), *FAST, "-v"]) == 0
+    err = capsys.readouterr().err
+    assert "cat.png: 2 of 2 solver runs stopped before their tolerance (the preset's caps" in err
+
+
+def test_quiet_prints_only_errors(photo, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["decompose", str(photo / "cat.png"), "-o", str(out), *FAST, "-q"]) == 0
+    assert capsys.readouterr().err == "" and (out / "cat-reflectance.png").is_file()
+    argv = ["-q", "decompose", str(photo / "cat.png"), "missing.png", "-o", str(out)]
+    assert main([*argv, "--iterations", "1"]) == 1  # -q: no progress bar either
+    assert capsys.readouterr().err.splitlines() == [
+        "torchiid: error: missing.png: no such file",
+        "torchiid: 1 of 2 input(s) failed",
+    ]
+
+
+def test_a_capped_solve_of_the_converged_preset_is_a_note(photo, tmp_path, monkeypatch, capsys):
+    import dataclasses
+
+    import torchiid.model as model
+
+    real = model.decompose
+
+    def capped(*args, **kwargs):  # the solves as if the last had hit its safety cap
+        result = real(*args, **kwargs)
+        last = dataclasses.replace(result.solves[-1], converged=False, iterations=9, cap=9)
+        return dataclasses.replace(result, solves=(*result.solves[:-1], last))
+
+    monkeypatch.setattr(model, "decompose", capped)
+    argv = ["decompose", str(photo / "cat.png"), "--preset", "converged", *FAST]
+    assert main([*argv, "-o", str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err
+    assert "torchiid: note: " in err and "1 of 2 solver runs stopped before their tolerance" in err
+    assert "safety caps: raise cg_max_iter / bregman_iter" in err and "cat-info.json" in err
+    assert main([*argv, "-o", str(tmp_path / "b"), "-q"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_solver_note_tells_a_breakdown_from_a_cap():
+    from torchiid.collection.job import solver_note
+    from torchiid.model import SolveReport
+
+    ok = SolveReport("shading", 1, 12, 0, 5e-5, 1e-4, 3000, True)
+    capped = SolveReport("reflectance", 1, 400, 2000, 2e-4, 5e-5, 400, False)
+    broke = SolveReport("shading", 5, 20, 0, 1.3e-3, 1e-4, 3000, False)
+    assert solver_note("a.png", [ok], True, "a-info.json") == (None, None)
+    note, detail = solver_note("a.png", [ok, capped], False, "a-info.json")
+    assert note is None and "the preset's caps" in detail and "a-info.json" in detail
+    note, detail = solver_note("a.png", [ok, capped], True, "a-info.json")
+    assert detail is None and "raise cg_max_iter" in note
+    note, _ = solver_note("a.png", [capped, broke], True, "a-info.json")
+    assert "no further progress" in note and "--verbose" in note and "2 of 2" in note
+
+
+def test_commands_are_registered_in_one_table():
+    names = [c.name for c in COMMANDS]
+    assert len(set(names)) == len(names)
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    assert list(sub.choices) == names
+    for command in COMMANDS:
+        module = importlib.import_module(f"torchiid.commands.{command.module}")
+        assert callable(module.add_arguments) and callable(module.run)

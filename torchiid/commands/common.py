@@ -1,0 +1,145 @@
+"""What every command shares: the run options, the parameter options and the quiet console.
+
+Nothing here imports torch (or anything heavy) at module level: the parsers are built for
+``torchiid --help`` too, which must start at once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from torchiid.params import Parameters
+
+__all__ = [
+    "DEVICES",
+    "THREAD_VARIABLES",
+    "add_parameter_options",
+    "params_from_args",
+    "run_options",
+    "say",
+    "verbosity_options",
+]
+
+DEVICES = ("auto", "cpu", "cuda")
+
+#: set to ``--threads`` before torch loads, so its OpenMP pool starts with that many threads
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+
+def _add_verbosity(p: argparse.ArgumentParser) -> None:
+    # SUPPRESS: given after the command they set the value; absent, they keep the global
+    # option's (``torchiid -v decompose ...`` and ``torchiid decompose -v ...`` both work)
+    group = p.add_mutually_exclusive_group()
+    group.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        default=argparse.SUPPRESS,
+        help="print only errors (no progress bar, notes or summaries)",
+    )
+    group.add_argument(
+        "-v",
+        "--verbose",
+        action="store_true",
+        default=argparse.SUPPRESS,
+        help="print details: per-item lines, solver reports, tracebacks of internal errors",
+    )
+
+
+def verbosity_options() -> argparse.ArgumentParser:
+    """A parent parser with ``-q/--quiet`` and ``-v/--verbose``."""
+    p = argparse.ArgumentParser(add_help=False)
+    _add_verbosity(p)
+    return p
+
+
+def _threads(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def run_options() -> argparse.ArgumentParser:
+    """A parent parser with the options of every command that runs long.
+
+    ``--no-progress``, ``--device``, ``--threads N``, ``-q/--quiet``, ``-v/--verbose``.
+    """
+    p = argparse.ArgumentParser(add_help=False)
+    group = p.add_argument_group("run options")
+    group.add_argument("--no-progress", action="store_true", help="no progress bar")
+    group.add_argument(
+        "--device",
+        default="auto",
+        choices=DEVICES,
+        help="where to run (auto: CUDA when available)",
+    )
+    group.add_argument(
+        "--threads",
+        type=_threads,
+        metavar="N",
+        help="CPU threads (torch and OpenMP; default: every core; with --workers: per worker, "
+        "default cores / workers)",
+    )
+    _add_verbosity(group)
+    return p
+
+
+def add_parameter_options(p: argparse.ArgumentParser) -> None:
+    """The options that choose the method's parameters (``decompose``, ``edit``, ``eval``...)."""
+    p.add_argument(
+        "--preset",
+        default="default",
+        help=(
+            "parameter preset: default, print (photos of printed matter: documents, "
+            "labels), paper or converged (every solve to tolerance)"
+        ),
+    )
+    p.add_argument("--params", type=Path, help="JSON file of parameters (over the preset)")
+    p.add_argument("--variant", help="ablation variant v1..v7 or baseline1..baseline3")
+    p.add_argument("--iterations", type=int, help="alternations k (overrides the preset)")
+    p.add_argument(
+        "--max-side", type=int, help="working resolution: longer side in px (0 = full resolution)"
+    )
+
+
+def params_from_args(args: argparse.Namespace) -> Parameters:
+    """Parameters from --preset, --params, --variant, --iterations and --max-side."""
+    from torchiid.core.exceptions import ParameterError
+    from torchiid.params import Parameters
+
+    params = Parameters.preset(args.preset)
+    if args.params is not None:
+        params = Parameters.from_json(args.params, base=params)
+    if args.variant:
+        params = params.variant(args.variant)
+    if args.iterations is not None:
+        if args.iterations < 1:
+            raise ParameterError(f"--iterations must be >= 1, got {args.iterations}")
+        params = params.replace(iterations=args.iterations)
+    if args.max_side is not None:
+        params = params.replace(max_side=args.max_side)
+    return params
+
+
+def say(args: argparse.Namespace, message: str) -> None:
+    """Print a note or a summary line to stderr, unless ``-q``."""
+    if not getattr(args, "quiet", False):
+        print(message, file=sys.stderr)
+
+
+def thread_environment(threads: int | None) -> dict[str, str | None]:
+    """Set :data:`THREAD_VARIABLES` to ``threads``; returns their previous values."""
+    previous = {name: os.environ.get(name) for name in THREAD_VARIABLES}
+    if threads is not None:
+        for name in THREAD_VARIABLES:
+            os.environ[name] = str(threads)
+    return previous
