@@ -1,3 +1,3 @@
-"""The version of torchiid: the one place it is written (``pyproject.toml`` reads it here)."""
+"""The version of torchiid, as the running code reports it (``pyproject.toml`` holds the same)."""
 
 __version__ = "1.0.0"
