@@ -181,6 +181,9 @@ def build_parser() -> argparse.ArgumentParser:
     from torchiid.commands.edit import add_edit_parser
 
     add_edit_parser(sub)
+    from torchiid.commands.app import add_parser as add_app_parser
+
+    add_app_parser(sub)
     return parser
 
 
@@ -223,6 +226,12 @@ def _cmd_edit(args: argparse.Namespace) -> int:
     return run_edit(args)
 
 
+def _cmd_app(args: argparse.Namespace) -> int:
+    from torchiid.commands.app import run
+
+    return run(args)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``torchiid`` console script; returns the exit status."""
     parser = build_parser()
@@ -237,6 +246,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "export-onnx": _cmd_export,
         "eval": _cmd_eval,
         "edit": _cmd_edit,
+        "app": _cmd_app,
     }
     main_thread = threading.current_thread() is threading.main_thread()
     if main_thread:

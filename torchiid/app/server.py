@@ -1,0 +1,140 @@
+"""Serving the page: a server with its own temporary folder, and a clean stop.
+
+:class:`Server` builds the page, points Gradio's cache (uploads, the images it sends) into a
+temporary folder of its own and serves on ``host:port`` with Gradio's queue; closing it stops
+the server and removes that folder, so nothing is left in temporary folders afterwards.
+:func:`serve` is what ``torchiid app`` runs: it prints the address and serves until Ctrl-C
+(or SIGTERM).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+from typing import TextIO
+
+from torchiid.app.callbacks import AppConfig
+from torchiid.app.files import ServerFolder
+from torchiid.app.ui import build_app, theme
+from torchiid.core.exceptions import TorchiidError, one_line
+
+__all__ = ["Server", "serve"]
+
+#: Gradio's cache folder (read by Gradio whenever it stores a file)
+_CACHE_VARIABLE = "GRADIO_TEMP_DIR"
+
+
+class Server:
+    """One running page.
+
+    Args:
+        config: what the page's decompositions use (:class:`~torchiid.app.AppConfig`).
+        host: the address to listen on (``127.0.0.1``: this machine only).
+        port: the port (``None``: the first free one from 7860).
+        share: also open a public link through Gradio's share servers.
+        temp_parent: where the server's temporary folder is made (default: the system's).
+
+    Example:
+        >>> with Server(AppConfig()) as server:  # doctest: +SKIP
+        ...     print(server.url)
+        http://127.0.0.1:7860/
+    """
+
+    def __init__(
+        self,
+        config: AppConfig,
+        *,
+        host: str = "127.0.0.1",
+        port: int | None = None,
+        share: bool = False,
+        temp_parent: str | Path | None = None,
+    ) -> None:
+        self.config = config
+        self.host, self.port, self.share = host, port, share
+        self.temp_parent = temp_parent
+        self.url: str | None = None
+        self.share_url: str | None = None
+        self.folder: ServerFolder | None = None
+        self._demo = None
+        self._previous_cache: str | None = None
+
+    def start(self) -> str:
+        """Start serving; returns the local address.
+
+        Raises:
+            TorchiidError: the server cannot listen there (the port is taken, ...).
+        """
+        self.folder = ServerFolder(self.temp_parent)
+        self._previous_cache = os.environ.get(_CACHE_VARIABLE)
+        os.environ[_CACHE_VARIABLE] = str(self.folder.gradio)
+        try:
+            self._demo = build_app(self.config, self.folder)
+            self._demo.queue(default_concurrency_limit=1)
+            _, self.url, self.share_url = self._demo.launch(
+                server_name=self.host,
+                server_port=self.port,
+                share=self.share,
+                prevent_thread_lock=True,
+                quiet=True,
+                show_error=False,
+                ssr_mode=False,
+                mcp_server=False,
+                pwa=False,
+                theme=theme(),
+            )
+        except (OSError, ValueError) as exc:
+            self.close()
+            where = f"{self.host}:{self.port}" if self.port else self.host
+            raise TorchiidError(f"cannot serve on {where}: {one_line(str(exc))}") from None
+        except BaseException:
+            self.close()
+            raise
+        return self.url
+
+    def close(self) -> None:
+        """Stop serving and remove the server's temporary folder (may be called twice)."""
+        if self._demo is not None:
+            self._demo.close(verbose=False)
+            self._demo = None
+        if self.folder is not None:
+            self.folder.remove()
+            self.folder = None
+            if self._previous_cache is None:
+                os.environ.pop(_CACHE_VARIABLE, None)
+            else:
+                os.environ[_CACHE_VARIABLE] = self._previous_cache
+
+    def __enter__(self) -> Server:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def serve(
+    config: AppConfig,
+    *,
+    host: str = "127.0.0.1",
+    port: int | None = None,
+    share: bool = False,
+    out: TextIO | None = None,
+) -> None:
+    """Serve the page until Ctrl-C or SIGTERM (a ``KeyboardInterrupt``), then clean up.
+
+    Args:
+        config: what the page's decompositions use.
+        host: the address to listen on.
+        port: the port (``None``: the first free one from 7860).
+        share: also open a public link through Gradio's share servers.
+        out: where the address is printed (default: standard output).
+    """
+    out = out or sys.stdout
+    with Server(config, host=host, port=port, share=share) as server:
+        print(f"torchiid app: serving on {server.url} (Ctrl-C stops it)", file=out, flush=True)
+        if server.share_url:
+            print(f"torchiid app: public link {server.share_url}", file=out, flush=True)
+        while True:
+            time.sleep(3600)
