@@ -111,8 +111,12 @@ class AppProcess:
         self.lines: queue.Queue[str] = queue.Queue()
         self.stdout: list[str] = []
         self.stderr: list[str] = []
-        for stream, into in ((self.proc.stdout, self.stdout), (self.proc.stderr, self.stderr)):
-            threading.Thread(target=self._read, args=(stream, into), daemon=True).start()
+        self._readers = [
+            threading.Thread(target=self._read, args=(stream, into), daemon=True)
+            for stream, into in ((self.proc.stdout, self.stdout), (self.proc.stderr, self.stderr))
+        ]
+        for thread in self._readers:
+            thread.start()
         self.url = self._wait_for_url()
 
     def _read(self, stream, into: list[str]) -> None:
@@ -144,4 +148,22 @@ class AppProcess:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
+        for thread in self._readers:
+            thread.join(timeout=10)
+        for stream in (self.proc.stdout, self.proc.stderr):
+            stream.close()
         return self.proc.returncode
+
+
+@pytest.fixture
+def start_app():
+    """``start_app(tmpdir, *options)``: a ``torchiid app`` subprocess, stopped after the test."""
+    started: list[AppProcess] = []
+
+    def start(tmpdir: Path, *args: str) -> AppProcess:
+        started.append(AppProcess(tmpdir, *args))
+        return started[-1]
+
+    yield start
+    for server in started:
+        server.stop()

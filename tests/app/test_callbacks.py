@@ -15,12 +15,12 @@ import torchiid.app.callbacks as callbacks  # noqa: E402
 from torchiid.app.callbacks import (  # noqa: E402
     COMPARE,
     EDIT_FIELDS,
-    AppConfig,
     Callbacks,
     Selection,
     forget,
     settings_from,
 )
+from torchiid.app.config import AppConfig  # noqa: E402
 from torchiid.app.edits import EditSettings  # noqa: E402
 from torchiid.app.files import ServerFolder, layer_names  # noqa: E402
 from torchiid.cli import main  # noqa: E402

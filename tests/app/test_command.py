@@ -10,6 +10,7 @@ import pytest
 pytest.importorskip("gradio")
 
 import torchiid.app as app  # noqa: E402
+import torchiid.commands.app as command  # noqa: E402
 from torchiid.cli import build_parser, main  # noqa: E402
 
 
@@ -78,14 +79,14 @@ def test_the_options_reach_the_server(monkeypatch, capsys):
 
 
 def test_without_gradio_the_message_says_what_to_install(monkeypatch, capsys):
-    monkeypatch.setitem(sys.modules, "torchiid.app", None)  # import torchiid.app fails
+    monkeypatch.setattr(command, "gradio_installed", lambda: False)
     assert main(["app"]) == 2
     assert "pip install 'torchiid[app]'" in capsys.readouterr().err
 
 
-def test_only_the_app_imports_gradio():
+def test_only_a_starting_server_imports_gradio():
     code = (
-        "import sys, torchiid, torchiid.cli; torchiid.cli.build_parser(); "
+        "import sys, torchiid, torchiid.cli, torchiid.app; torchiid.cli.build_parser(); "
         "assert 'gradio' not in sys.modules, 'gradio imported'"
     )
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -21,6 +21,7 @@ from typing import Any
 import gradio as gr
 import numpy as np
 
+from torchiid.app.config import AppConfig
 from torchiid.app.edits import EditSettings, render
 from torchiid.app.files import ServerFolder, write_edited, write_layers_zip
 from torchiid.app.objects import highlight
@@ -31,7 +32,6 @@ from torchiid.params import Parameters
 __all__ = [
     "COMPARE",
     "EDIT_FIELDS",
-    "AppConfig",
     "Callbacks",
     "Selection",
     "settings_from",
@@ -43,35 +43,6 @@ log = logging.getLogger("torchiid")
 EDIT_FIELDS = tuple(f.name for f in fields(EditSettings))
 #: what the before/after slider compares the photo with
 COMPARE = ("edited photo", "edited reflectance", "edited shading")
-
-
-@dataclass(frozen=True)
-class AppConfig:
-    """How a server runs its decompositions and what the page starts with.
-
-    Attributes:
-        preset: the preset the page starts with.
-        iterations: the alternations it starts with (``None``: the preset's).
-        max_side: the working resolution it starts with (``None``: the preset's).
-        device: where decompositions run (``"cpu"``, ``"cuda"``, ...).
-        memory_limit: a cap in bytes on one decomposition's memory (``None``: what is
-            available, and ``TORCHIID_MEMORY_LIMIT``).
-    """
-
-    preset: str = "default"
-    iterations: int | None = None
-    max_side: int | None = None
-    device: str = "cpu"
-    memory_limit: int | None = None
-
-    def params(self) -> Parameters:
-        """The parameters the page starts with."""
-        params = Parameters.preset(self.preset)
-        if self.iterations is not None:
-            params = params.replace(iterations=self.iterations)
-        if self.max_side is not None:
-            params = params.replace(max_side=self.max_side)
-        return params
 
 
 @dataclass(frozen=True)

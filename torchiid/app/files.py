@@ -10,6 +10,7 @@ files as ``torchiid decompose --save-stage1`` (the last Stage 1 layers too, whic
 
 from __future__ import annotations
 
+import os
 import shutil
 import tempfile
 import zipfile
@@ -24,10 +25,17 @@ __all__ = ["ServerFolder", "layer_names", "write_edited", "write_layers_zip"]
 
 #: files whose bytes are compressed already are stored in the zip as they are
 _STORED = (".png", ".exr")
+#: the process's temporary folder, and Gradio's cache folder
+_TMPDIR, _CACHE = "TMPDIR", "GRADIO_TEMP_DIR"
 
 
 class ServerFolder:
     """A server's own temporary folder, removed with everything in it by :meth:`remove`.
+
+    It holds Gradio's cache (``gradio/``), the photos' downloads (``sessions/``) and, once
+    :meth:`activate` made it so, the process's temporary folder (``tmp/``: ``TMPDIR``), where
+    the libraries put their own temporary files (ONNX Runtime leaves a small ``.ses`` file
+    there, for one).
 
     Args:
         parent: where to create it (default: the system's temporary folder).
@@ -36,16 +44,39 @@ class ServerFolder:
     def __init__(self, parent: str | Path | None = None) -> None:
         self.root = Path(tempfile.mkdtemp(prefix="torchiid-app-", dir=parent))
         self.gradio = self.root / "gradio"
-        self.gradio.mkdir()
         self.sessions = self.root / "sessions"
-        self.sessions.mkdir()
+        self.tmp = self.root / "tmp"
+        for folder in (self.gradio, self.sessions, self.tmp):
+            folder.mkdir()
+        self._saved: dict[str, str | None] | None = None
+
+    def activate(self) -> None:
+        """Make this the process's temporary folder and Gradio's cache, until :meth:`remove`.
+
+        Gradio reads ``GRADIO_TEMP_DIR`` and the temporary folder when it is imported, so a
+        server that is to leave nothing behind activates its folder before that.
+        """
+        if self._saved is None:
+            self._saved = {k: os.environ.get(k) for k in (_TMPDIR, _CACHE)}
+            self._saved_tempdir = tempfile.tempdir
+        os.environ[_TMPDIR] = str(self.tmp)
+        os.environ[_CACHE] = str(self.gradio)
+        tempfile.tempdir = str(self.tmp)
 
     def session_folder(self) -> Path:
         """A new empty folder for one photo's downloads."""
         return Path(tempfile.mkdtemp(prefix="photo-", dir=self.sessions))
 
     def remove(self) -> None:
-        """Remove the folder and everything in it."""
+        """Remove the folder and everything in it; undo :meth:`activate`."""
+        if self._saved is not None:
+            for key, value in self._saved.items():
+                if value is None:
+                    os.environ.pop(key, None)
+                else:
+                    os.environ[key] = value
+            tempfile.tempdir = self._saved_tempdir
+            self._saved = None
         shutil.rmtree(self.root, ignore_errors=True)
 
 

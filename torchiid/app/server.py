@@ -1,29 +1,24 @@
 """Serving the page: a server with its own temporary folder, and a clean stop.
 
-:class:`Server` builds the page, points Gradio's cache (uploads, the images it sends) into a
-temporary folder of its own and serves on ``host:port`` with Gradio's queue; closing it stops
-the server and removes that folder, so nothing is left in temporary folders afterwards.
-:func:`serve` is what ``torchiid app`` runs: it prints the address and serves until Ctrl-C
-(or SIGTERM).
+:class:`Server` builds the page and serves it on ``host:port`` with Gradio's queue, its
+temporary files (Gradio's cache: uploads, the images it sends; the downloads) in a
+:class:`~torchiid.app.files.ServerFolder` that closing it removes. :func:`serve` is what
+``torchiid app`` runs: it makes that folder the process's temporary folder before Gradio is
+imported (this module imports Gradio only when a server starts), prints the address and
+serves until Ctrl-C (or SIGTERM), so nothing is left in temporary folders afterwards.
 """
 
 from __future__ import annotations
 
-import os
 import sys
 import time
-from pathlib import Path
 from typing import TextIO
 
-from torchiid.app.callbacks import AppConfig
+from torchiid.app.config import AppConfig
 from torchiid.app.files import ServerFolder
-from torchiid.app.ui import build_app, theme
 from torchiid.core.exceptions import TorchiidError, one_line
 
 __all__ = ["Server", "serve"]
-
-#: Gradio's cache folder (read by Gradio whenever it stores a file)
-_CACHE_VARIABLE = "GRADIO_TEMP_DIR"
 
 
 class Server:
@@ -34,7 +29,8 @@ class Server:
         host: the address to listen on (``127.0.0.1``: this machine only).
         port: the port (``None``: the first free one from 7860).
         share: also open a public link through Gradio's share servers.
-        temp_parent: where the server's temporary folder is made (default: the system's).
+        folder: the server's temporary folder (default: a new one, activated while it
+            serves and removed when it is closed).
 
     Example:
         >>> with Server(AppConfig()) as server:  # doctest: +SKIP
@@ -49,16 +45,15 @@ class Server:
         host: str = "127.0.0.1",
         port: int | None = None,
         share: bool = False,
-        temp_parent: str | Path | None = None,
+        folder: ServerFolder | None = None,
     ) -> None:
         self.config = config
         self.host, self.port, self.share = host, port, share
-        self.temp_parent = temp_parent
+        self.folder = folder
+        self._own_folder = folder is None
         self.url: str | None = None
         self.share_url: str | None = None
-        self.folder: ServerFolder | None = None
         self._demo = None
-        self._previous_cache: str | None = None
 
     def start(self) -> str:
         """Start serving; returns the local address.
@@ -66,10 +61,12 @@ class Server:
         Raises:
             TorchiidError: the server cannot listen there (the port is taken, ...).
         """
-        self.folder = ServerFolder(self.temp_parent)
-        self._previous_cache = os.environ.get(_CACHE_VARIABLE)
-        os.environ[_CACHE_VARIABLE] = str(self.folder.gradio)
+        if self.folder is None:
+            self.folder = ServerFolder()
+            self.folder.activate()
         try:
+            from torchiid.app.ui import build_app, theme
+
             self._demo = build_app(self.config, self.folder)
             self._demo.queue(default_concurrency_limit=1)
             _, self.url, self.share_url = self._demo.launch(
@@ -77,6 +74,7 @@ class Server:
                 server_port=self.port,
                 share=self.share,
                 prevent_thread_lock=True,
+                allowed_paths=[str(self.folder.sessions)],  # the downloads
                 quiet=True,
                 show_error=False,
                 ssr_mode=False,
@@ -98,13 +96,9 @@ class Server:
         if self._demo is not None:
             self._demo.close(verbose=False)
             self._demo = None
-        if self.folder is not None:
+        if self._own_folder and self.folder is not None:
             self.folder.remove()
             self.folder = None
-            if self._previous_cache is None:
-                os.environ.pop(_CACHE_VARIABLE, None)
-            else:
-                os.environ[_CACHE_VARIABLE] = self._previous_cache
 
     def __enter__(self) -> Server:
         self.start()
@@ -132,9 +126,14 @@ def serve(
         out: where the address is printed (default: standard output).
     """
     out = out or sys.stdout
-    with Server(config, host=host, port=port, share=share) as server:
-        print(f"torchiid app: serving on {server.url} (Ctrl-C stops it)", file=out, flush=True)
-        if server.share_url:
-            print(f"torchiid app: public link {server.share_url}", file=out, flush=True)
-        while True:
-            time.sleep(3600)
+    folder = ServerFolder()
+    folder.activate()  # before Gradio is imported: it keeps the folders it finds then
+    try:
+        with Server(config, host=host, port=port, share=share, folder=folder) as server:
+            print(f"torchiid app: serving on {server.url} (Ctrl-C stops it)", file=out, flush=True)
+            if server.share_url:
+                print(f"torchiid app: public link {server.share_url}", file=out, flush=True)
+            while True:
+                time.sleep(3600)
+    finally:
+        folder.remove()

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import gradio as gr
 
-from torchiid.app.callbacks import COMPARE, EDIT_FIELDS, AppConfig, Callbacks, forget
+from torchiid.app.callbacks import COMPARE, EDIT_FIELDS, Callbacks, forget
+from torchiid.app.config import AppConfig
 from torchiid.app.edits import EditSettings
 from torchiid.app.files import ServerFolder
 from torchiid.params import PRESETS

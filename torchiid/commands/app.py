@@ -6,9 +6,15 @@ The options are defined here without importing torch or Gradio; :func:`run` impo
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import sys
 
-__all__ = ["add_parser", "run"]
+__all__ = ["add_parser", "gradio_installed", "run"]
+
+
+def gradio_installed() -> bool:
+    """Whether Gradio can be imported (without importing it)."""
+    return importlib.util.find_spec("gradio") is not None
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -69,12 +75,10 @@ def run(args: argparse.Namespace) -> int:
     from torchiid.core.exceptions import ParameterError, TorchiidError
     from torchiid.core.memory import memory_limit
 
-    try:
-        import torchiid.app as app
-    except ImportError as exc:
-        raise TorchiidError(
-            f"torchiid app needs Gradio ({exc}); install it with pip install 'torchiid[app]'"
-        ) from None
+    if not gradio_installed():
+        raise TorchiidError("torchiid app needs Gradio: pip install 'torchiid[app]'")
+    import torchiid.app as app  # without Gradio yet: serve() imports it
+
     if args.threads is not None:
         if args.threads < 1:
             raise ParameterError(f"--threads must be >= 1, got {args.threads}")
