@@ -62,6 +62,7 @@ def photos(tmp_path_factory):
         "chelsea": write_photo(d / "chelsea.png", chelsea),
         "coffee": write_photo(d / "coffee600.png", data.coffee()),
         "large": write_photo(d / "large.png", coffee(1500, 1000)),
+        "huge": write_photo(d / "huge.jpg", coffee(3000, 2000)),
         "texture": write_photo(d / "texture.png", data.astronaut()[::16, ::16]),
         "jpeg": jpeg,
         "truncated": d / "truncated.jpg",
@@ -167,3 +168,42 @@ def start_app():
     yield start
     for server in started:
         server.stop()
+
+
+@pytest.fixture(scope="session")
+def browser_type_launch_args(browser_type_launch_args):
+    """pytest-playwright's browser: Debian's Chromium, or the browser tests skip."""
+    if not CHROMIUM.exists():
+        pytest.skip(f"Chromium is not installed at {CHROMIUM} (Debian: apt-get install chromium)")
+    return {**browser_type_launch_args, "executable_path": str(CHROMIUM), "args": CHROMIUM_ARGS}
+
+
+@pytest.fixture(scope="session")
+def browser_context_args(browser_context_args):
+    """Pages as a laptop shows them, downloads allowed."""
+    return {
+        **browser_context_args,
+        "viewport": {"width": 1280, "height": 1000},
+        "accept_downloads": True,
+    }
+
+
+@pytest.fixture(scope="module")
+def browser_app(photos, tmp_path_factory):
+    """A server for the browser tests: 1 alternation, a memory limit that refuses "huge".
+
+    The limit lies halfway between what the 600x400 coffee photo needs with 5 alternations
+    (the screenshot's run) and what the 3000x2000 one needs with 1.
+    """
+    from torchiid.model import memory_needed
+    from torchiid.params import Parameters
+
+    flags = {"return_stage1": True, "return_iterations": True}
+    fits = memory_needed(400, 600, Parameters().replace(iterations=5), **flags)
+    refused = memory_needed(2000, 3000, Parameters().replace(iterations=1), **flags)
+    limit = (fits + refused) / 2 / 1e9
+    server = AppProcess(
+        tmp_path_factory.mktemp("browser-app"), "--iterations", "1", "--memory-limit", f"{limit}"
+    )
+    yield server
+    server.stop()

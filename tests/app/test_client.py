@@ -31,7 +31,10 @@ def test_the_decompose_endpoint_then_a_stop_that_leaves_no_temporary_file(
         photo, refl, shading, info = client.predict(
             handle_file(str(photos["chelsea"])), "default", 1, 512, api_name=decompose
         )
-        views = [np.asarray(Image.open(path).convert("RGB")) for path in (photo, refl, shading)]
+        views = []
+        for path in (photo, refl, shading):
+            with Image.open(path) as image:
+                views.append(np.asarray(image.convert("RGB")))
         for view in views:
             assert view.shape == (150, 200, 3)
         assert np.abs(views[1].astype(int) - views[0].astype(int)).mean() > 5

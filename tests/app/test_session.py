@@ -66,11 +66,11 @@ def test_a_large_photo_goes_through_the_working_resolution(photos):
 
 
 def test_the_exif_orientation_is_applied(photos, tmp_path):
-    rgb = Image.open(photos["small"]).convert("RGB")  # 96 x 64
     exif = Image.Exif()
     exif[0x0112] = 6  # the camera was turned: the viewer rotates by 90 degrees
     path = tmp_path / "turned.jpg"
-    rgb.save(path, quality=95, exif=exif)
+    with Image.open(photos["small"]) as rgb:  # 96 x 64
+        rgb.convert("RGB").save(path, quality=95, exif=exif)
     s = open_photo(path, ONE)
     assert s.full.image.shape == (1, 3, 96, 64)  # upright: 64 wide, 96 high
     assert s.orientation == 6 and s.info["exif_orientation"] == 6
