@@ -4,9 +4,9 @@ For photos of 0.24 and 12 megapixels (skimage's coffee, and a 4032x3024 mosaic o
 skimage photos saved as a JPEG) decomposed once (1 alternation: the layers' sizes, not their
 quality, set the edits' cost), every edit control of the page is timed as its callback
 (:meth:`torchiid.app.callbacks.Callbacks.preview`: the edits on the preview layers and the
-sRGB views) and with the PNG encoding Gradio then does of the two views; the click on an
-object, and the downloads (full-resolution edit, the layers' zip) for reference. The median
-of ``--repeats`` runs, in milliseconds.
+sRGB views) and with the JPEG encoding Gradio then does of the slider's two views; the click
+on an object, and the downloads (full-resolution edit, the layers' zip) for reference. The
+median of ``--repeats`` runs, in milliseconds (the downloads: one run).
 
 With ``--browser`` (needs Debian's Chromium at /usr/bin/chromium and Playwright) the page is
 served in this process and driven by headless Chromium: the time from typing a slider value
@@ -21,7 +21,6 @@ from __future__ import annotations
 import torchiid.openmp  # noqa: F401  (before torch: see torchiid/openmp.py)
 
 import argparse
-import io
 import statistics
 import sys
 import tempfile
@@ -31,7 +30,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from PIL import Image
 from skimage import data
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -73,9 +71,12 @@ def _ms(fn, repeats: int) -> float:
     return 1000 * statistics.median(times)
 
 
-def _png(*views: np.ndarray) -> None:
+def _encode(cache: str, *views: np.ndarray) -> None:
+    """What Gradio does with the slider's two views: JPEG files in its cache."""
+    from gradio import processing_utils
+
     for view in views:
-        Image.fromarray(view).save(io.BytesIO(), "png")
+        processing_utils.save_img_array_to_cache(view, cache, format="jpeg")
 
 
 def bench_callbacks(photo: Path, texture: str, repeats: int) -> None:
@@ -88,7 +89,7 @@ def bench_callbacks(photo: Path, texture: str, repeats: int) -> None:
         h, w = session.full.size
         ph, pw = session.preview.size
         print(f"\n{photo.name}: {w}x{h} px, preview (working resolution) {pw}x{ph} px\n")
-        print("| control | callback ms | with Gradio's PNG encoding ms |")
+        print("| control | callback ms | with Gradio's encoding of the views ms |")
         print("| --- | --- | --- |")
         selection = calls.select(session, _click(pw // 2, ph // 2))[0]
         for name, changes in EDITS.items():
@@ -98,7 +99,7 @@ def bench_callbacks(photo: Path, texture: str, repeats: int) -> None:
                 return calls.preview(session, selection, COMPARE[0], *values)
 
             def run_and_encode(values=values):
-                _png(*calls.preview(session, selection, COMPARE[0], *values))
+                _encode(str(folder.gradio), *calls.preview(session, selection, COMPARE[0], *values))
 
             print(f"| {name} | {_ms(run, repeats):.0f} | {_ms(run_and_encode, repeats):.0f} |")
         click = _ms(lambda: calls.select(session, _click(pw // 3, ph // 2)), repeats)

@@ -206,4 +206,6 @@ def browser_app(photos, tmp_path_factory):
         tmp_path_factory.mktemp("browser-app"), "--iterations", "1", "--memory-limit", f"{limit}"
     )
     yield server
-    server.stop()
+    # SIGTERM (a closed session, a service manager) stops it as cleanly as Ctrl-C
+    assert server.stop(signal.SIGTERM) == 0, "".join(server.stderr)[-2000:]
+    assert list(server.tmpdir.iterdir()) == [], "temporary files were left behind"

@@ -97,6 +97,38 @@ def _merged(session: Session, layers: Layers) -> edit.Merged:
     return merged
 
 
+def _object_edits(
+    session: Session,
+    layers: Layers,
+    refl: torch.Tensor,
+    shading: torch.Tensor,
+    selection: torch.Tensor,
+    s: EditSettings,
+) -> torch.Tensor:
+    """The selected object's reflectance edits, on the selection's bounding box only.
+
+    Each of them changes nothing outside the selection and reads only inside it (the
+    texture's tiles start at the selection's bounding box), so working on that box gives
+    the same reflectance as working on the whole photo, for a fraction of the pixels.
+    """
+    rows = torch.nonzero(selection[0, 0].any(1))[:, 0]
+    cols = torch.nonzero(selection[0, 0].any(0))[:, 0]
+    box = (..., slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
+    r, sh, m = refl[box], shading[box], selection[box]
+    if s.flatten:
+        _, r = edit.remove_texture(r, sh, m)
+    if s.texture is not None:
+        # the tiles keep their size relative to the photo at every resolution
+        scale = s.scale * layers.size[1] / session.full.size[1]
+        tex = _texture(session, s.texture)
+        _, r = edit.replace_albedo(r, sh, m, tex, fit=s.fit, scale=scale)
+    if s.hue != 0 or s.chroma != 1:
+        _, r = edit.recolour(r, sh, m, hue=s.hue, chroma=s.chroma)
+    out = refl.clone()
+    out[box] = r
+    return out
+
+
 def apply_edits(
     session: Session,
     layers: Layers,
@@ -140,15 +172,7 @@ def apply_edits(
         )
         refl = merged.reflectance
     if selection is not None and bool(selection.any()) and s.object_edits:
-        if s.flatten:
-            _, refl = edit.remove_texture(refl, shading, selection)
-        if s.texture is not None:
-            # the tiles keep their size relative to the photo at every resolution
-            scale = s.scale * layers.size[1] / session.full.size[1]
-            tex = _texture(session, s.texture)
-            _, refl = edit.replace_albedo(refl, shading, selection, tex, fit=s.fit, scale=scale)
-        if s.hue != 0 or s.chroma != 1:
-            _, refl = edit.recolour(refl, shading, selection, hue=s.hue, chroma=s.chroma)
+        refl = _object_edits(session, layers, refl, shading, selection, s)
     if s.soften != 0:
         _, shading = edit.soften_shadows(refl, shading, s.soften)
     if s.tint_strength > 0:
