@@ -84,7 +84,10 @@ def test_bad_files_and_photos_over_the_memory_limit_are_refused_before_any_work(
     with pytest.raises(ImageError, match="is 1x1 px; at least 60 px per side is needed"):
         open_photo(photos["tiny"], ONE)
     seen = []
-    with pytest.raises(MemoryLimitError, match="over the memory limit of 0.10 GB"):
+    with pytest.raises(
+        MemoryLimitError,
+        match=r"^coffee.png: decomposing 96x64 px .* over the memory limit of 0.10 GB",
+    ):
         open_photo(
             photos["small"], ONE, memory_limit=100_000_000, progress=lambda f, m: seen.append(m)
         )

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from torchiid.app.objects import Objects
+from torchiid.core.exceptions import MemoryLimitError
 from torchiid.io import load_image
 from torchiid.io.layers import srgb8_from_linear
 from torchiid.model import Decomposition, check_memory, decompose
@@ -206,7 +207,10 @@ def open_photo(
     device = torch.device(device)
     flags = {"return_stage1": True, "return_iterations": True}
     if device.type == "cpu":
-        check_memory(h, w, params, limit=memory_limit, **flags)
+        try:
+            check_memory(h, w, params, limit=memory_limit, **flags)
+        except MemoryLimitError as exc:
+            raise MemoryLimitError(f"{name}: {exc}") from None
     total = params.iterations + 2  # Stage 0, the alternations, the full-resolution layers
     say(0.0, "Stage 0: semantic features")
 
