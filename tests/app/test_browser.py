@@ -58,6 +58,21 @@ def _set(page, elem_id: str, value: float) -> None:
     box.press("Enter")
 
 
+def _click_image(page, elem_id: str, u: float, v: float) -> None:
+    """Click at ``(u, v)`` (fractions of the width and height) of the picture an image shows.
+
+    Gradio draws a picture at most at its own size, centred in its box, and takes only
+    clicks on the picture.
+    """
+    img = page.locator(f"#{elem_id} img")
+    box = img.bounding_box()
+    natural = img.evaluate("i => [i.naturalWidth, i.naturalHeight]")
+    scale = min(box["width"] / natural[0], box["height"] / natural[1], 1)
+    x = (box["width"] - natural[0] * scale) / 2 + u * natural[0] * scale
+    y = (box["height"] - natural[1] * scale) / 2 + v * natural[1] * scale
+    img.click(position={"x": x, "y": y})
+
+
 def _wait_for_new_after(page, before: str) -> None:
     page.wait_for_function(
         "(b) => { const i = document.querySelectorAll('#compare img')[1];"
@@ -89,8 +104,7 @@ def test_upload_slider_click_and_downloads(page, browser_app, photos, tmp_path):
     _wait_for_new_after(page, before)
 
     # a click on the object under the pointer selects it; a hue edit recolours it
-    box = page.locator("#photo img").bounding_box()
-    page.locator("#photo img").click(position={"x": box["width"] * 0.72, "y": box["height"] * 0.78})
+    _click_image(page, "photo", 0.72, 0.78)
     status = page.locator("#selection-status")
     expect(status).to_contain_text("Selected: ", timeout=60_000)
     expect(status).to_contain_text("(object 1 of ")
