@@ -85,6 +85,8 @@ def _wait_for_new_after(page, before: str) -> None:
 def test_upload_slider_click_and_downloads(page, browser_app, photos, tmp_path):
     screenshot = os.environ.get("TORCHIID_UPDATE_SCREENSHOT") == "1"
     photo = photos["coffee"] if screenshot else photos["small"]
+    requests: list[str] = []
+    page.on("request", lambda request: requests.append(request.url))
     page.goto(browser_app.url)
     if screenshot:
         _set(page, "iterations", 5)
@@ -140,6 +142,10 @@ def test_upload_slider_click_and_downloads(page, browser_app, photos, tmp_path):
     download.value.save_as(edited)
     with Image.open(edited) as got, Image.open(photo) as original:
         assert got.size == original.size
+
+    # the page loaded nothing from anywhere but the server (no fonts, no analytics)
+    outside = [u for u in requests if not u.startswith((browser_app.url, "data:", "blob:"))]
+    assert outside == []
 
     if screenshot:
         page.get_by_text("Every alternation's layers").click()  # folded again

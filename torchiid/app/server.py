@@ -32,10 +32,10 @@ class Server:
         folder: the server's temporary folder (default: a new one, activated while it
             serves and removed when it is closed).
 
-    Example:
-        >>> with Server(AppConfig()) as server:  # doctest: +SKIP
-        ...     print(server.url)
-        http://127.0.0.1:7860/
+    Example::
+
+        with Server(AppConfig()) as server:
+            print(server.url)  # http://127.0.0.1:7860/
     """
 
     def __init__(
