@@ -34,6 +34,7 @@ __all__ = [
     "EDIT_FIELDS",
     "Callbacks",
     "Selection",
+    "forget",
     "settings_from",
 ]
 
@@ -191,10 +192,7 @@ class Callbacks:
         """Write the layers (the CLI's files) as a zip; its path."""
         if session is None:
             raise _no_photo()
-        folder = session.cache.get("folder")
-        if folder is None:
-            folder = session.cache["folder"] = self.folder.session_folder()
-        return str(write_layers_zip(session, folder))
+        return str(write_layers_zip(session, self._downloads(session)))
 
     @_user_errors
     def preview(
@@ -232,7 +230,7 @@ class Callbacks:
                 None,
                 srgb8(session.preview.image),
                 gr.update(value=0, maximum=1),
-                ("No object there; click elsewhere."),
+                "No object there; click elsewhere.",
             )
         selection = Selection(tuple(candidates))
         image, status = self._selected(session, selection)
@@ -280,10 +278,13 @@ class Callbacks:
         proposal = None if selection is None else selection.proposal
         edited = render(session, settings, proposal, full=True)
         progress(0.8, desc="writing the PNG")
-        folder = session.cache.get("folder")
-        if folder is None:
-            folder = session.cache["folder"] = self.folder.session_folder()
-        return str(write_edited(session, edited.image, folder))
+        return str(write_edited(session, edited.image, self._downloads(session)))
+
+    def _downloads(self, session: Session) -> Path:
+        """The session's download folder, made when it first writes one."""
+        if session.cache.get("folder") is None:
+            session.cache["folder"] = self.folder.session_folder()
+        return session.cache["folder"]
 
 
 def forget(session: Session | None) -> None:

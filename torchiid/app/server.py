@@ -85,7 +85,11 @@ class Server:
         except (OSError, ValueError) as exc:
             self.close()
             where = f"{self.host}:{self.port}" if self.port else self.host
-            raise TorchiidError(f"cannot serve on {where}: {one_line(str(exc))}") from None
+            why = one_line(str(exc))
+            if "Cannot find empty port" in why:  # Gradio's words for a port in use
+                why = "the port is in use" if self.port else "no free port from 7860 to 7959"
+                why += "; choose another with --port"
+            raise TorchiidError(f"cannot serve on {where}: {why}") from None
         except BaseException:
             self.close()
             raise
