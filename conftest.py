@@ -8,12 +8,17 @@
   one thread per core, oversubscribe the cores (measured: 205 s against 111 s with one thread
   each). Each worker, and every process a test starts from it (CLI runs, collection workers),
   uses one.
+* The browser app (``torchiid/app``) imports Gradio, which only the ``app`` extra installs:
+  without it, its modules are not collected for their doctests (``tests/app`` skips itself).
 """
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import signal
+
+collect_ignore = [] if importlib.util.find_spec("gradio") else ["torchiid/app"]
 
 
 def pytest_configure(config):

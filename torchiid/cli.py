@@ -32,7 +32,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from torchiid._version import __version__
-from torchiid.commands.common import run_options, thread_environment, verbosity_options
+from torchiid.commands.common import run_options, run_environment, verbosity_options
 
 __all__ = ["COMMANDS", "Command", "build_parser", "main"]
 
@@ -69,6 +69,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("eval", "eval", "score a method or saved results on a benchmark"),
     Command("features", "features", "pictures of a photo's Stage 0 features"),
     Command("export-onnx", "export_onnx", "export the feature extractor to ONNX", runs_long=False),
+    Command("app", "app", "decompose and edit photos in the browser"),
 )
 
 
@@ -135,7 +136,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         # SIGTERM (kill, timeout, a closed session) cleans up like Ctrl-C
         previous = signal.signal(signal.SIGTERM, _interrupt)
     threads = getattr(args, "threads", None)
-    environment = thread_environment(threads)  # before torch loads: its OpenMP pool size
+    # before torch loads (its OpenMP pool size); workers inherit both
+    environment = run_environment(threads, getattr(args, "memory_limit", None))
     torch_threads = None
     try:
         if threads is not None:

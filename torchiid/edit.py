@@ -116,12 +116,38 @@ def default_blur(height: int, width: int) -> float:
     return max(1.0, 0.01 * max(height, width))
 
 
+#: the largest σ in pixels that :func:`gaussian` applies at the image's own resolution
+FAST_SIGMA = 4.0
+
+
 def gaussian(x: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Separable Gaussian blur of ``(B, C, H, W)`` with σ in pixels (replicated borders)."""
+    """Separable Gaussian blur of ``(B, C, H, W)`` with σ in pixels (replicated borders).
+
+    A σ of at least twice :data:`FAST_SIGMA` is applied to a copy area-averaged by the
+    integer factor ``f = σ // FAST_SIGMA`` and brought back by bilinear interpolation, both
+    of which blur too (variances ``(f² − 1) / 12`` and about ``f² / 6`` px²), so the Gaussian
+    there has the rest; the borders are replicated at the image's own resolution first. A
+    blur whose kernel spans hundreds of pixels (the edits' residue filters on a 12-megapixel
+    photo) then costs about ``f²`` times fewer pixels and ``f`` times fewer taps (σ = 40 on
+    800×600×3 in float64, 2 threads: 0.15 s instead of 5.8 s) and differs from the exact
+    blur by at most 0.2% of the signal's range (``tests/edit/test_edit.py``).
+    """
     if sigma <= 0:
         return x
-    k = 2 * math.ceil(3 * sigma) + 1
-    return kornia.filters.gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="replicate")
+    f = int(sigma // FAST_SIGMA)
+    if f < 2:
+        k = 2 * math.ceil(3 * sigma) + 1
+        return kornia.filters.gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="replicate")
+    h, w = x.shape[-2:]
+    rest = math.sqrt(sigma * sigma - (f * f - 1) / 12 - f * f / 6) / f
+    # replicated borders at the image's own resolution, as the exact blur has them: a margin
+    # of the small kernel's reach, and a whole number of small pixels in all
+    pad = f * (math.ceil(3 * rest) + 1)
+    bottom, right = pad + (-(h + 2 * pad)) % f, pad + (-(w + 2 * pad)) % f
+    big = F.pad(x, (pad, right, pad, bottom), mode="replicate")
+    small = F.avg_pool2d(big, f)
+    up = F.interpolate(gaussian(small, rest), scale_factor=f, mode="bilinear", align_corners=False)
+    return up[..., pad : pad + h, pad : pad + w]
 
 
 def _srgb_encode(x: torch.Tensor) -> torch.Tensor:

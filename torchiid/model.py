@@ -41,6 +41,7 @@ from torchiid.pipeline.memory import (
     BYTES_PER_WORKING_PIXEL,
     MEMORY_CHECK_VARIABLE,
     MEMORY_OVERHEAD,
+    check_memory,
     memory_needed,
 )
 from torchiid.pipeline.results import Decomposition, IterationLayers, SolveReport
@@ -55,6 +56,7 @@ __all__ = [
     "full_resolution_layers",
     "IntrinsicDecomposer",
     "memory_needed",
+    "check_memory",
     "BYTES_PER_WORKING_PIXEL",
     "BYTES_PER_FULL_PIXEL",
     "MEMORY_OVERHEAD",

@@ -9,9 +9,9 @@ from skimage import data
 import torchiid.model as model
 import torchiid.pipeline.memory as memory
 from torchiid.cli import main
-from torchiid.core.exceptions import MemoryLimitError, TorchiidError
-from torchiid.core.memory import available_memory
-from torchiid.model import decompose, memory_needed
+from torchiid.core.exceptions import MemoryLimitError, ParameterError, TorchiidError
+from torchiid.core.memory import available_memory, memory_limit
+from torchiid.model import check_memory, decompose, memory_needed
 from torchiid.params import Parameters
 from torchiid.synthetic import mondrian
 
@@ -212,3 +212,60 @@ def test_cli_fails_only_the_photo_that_cannot_fit(tmp_path, monkeypatch, capsys)
     status = main([*argv, "--iterations", "1", "--no-progress"])
     assert status == 0
     assert (out / "big-reflectance.png").exists()
+
+
+def test_a_memory_limit_is_read_in_gb_from_the_environment_or_given(monkeypatch):
+    monkeypatch.delenv("TORCHIID_MEMORY_LIMIT", raising=False)
+    assert memory_limit() is None
+    monkeypatch.setenv("TORCHIID_MEMORY_LIMIT", " 2.5 ")
+    assert memory_limit() == 2_500_000_000
+    monkeypatch.setenv("TORCHIID_MEMORY_LIMIT", "0")  # 0: no cap
+    assert memory_limit() is None
+    assert memory_limit(0.25) == 250_000_000
+    monkeypatch.setenv("TORCHIID_MEMORY_LIMIT", "4GB")
+    with pytest.raises(ParameterError, match="TORCHIID_MEMORY_LIMIT must be a number of GB"):
+        memory_limit()
+    for bad in ("-1", "nan", "inf"):
+        with pytest.raises(ParameterError, match="the memory limit must be"):
+            memory_limit(bad)
+
+
+def test_a_memory_limit_caps_what_is_available_and_the_message_says_how_to_raise_it(
+    monkeypatch,
+):
+    img = mondrian(96, 128).image
+    p = Parameters().replace(iterations=1, max_side=0)
+    need = memory_needed(96, 128, p, return_stage1=True)
+
+    def no_work(*args, **kwargs):  # pragma: no cover - must not be reached
+        raise AssertionError("the features were computed")
+
+    monkeypatch.setattr(model, "semantic_features", no_work)
+    monkeypatch.setattr(model, "available_memory", lambda: 100 * need)
+    monkeypatch.setenv("TORCHIID_MEMORY_LIMIT", str((need - 1_000_000) / 1e9))
+    with pytest.raises(MemoryLimitError) as err:
+        decompose(img, p)
+    msg = str(err.value)
+    assert "over the memory limit of" in msg and "is available" not in msg
+    assert "--memory-limit GB, or TORCHIID_MEMORY_LIMIT" in msg
+    # switching the check off does not lift a cap the user set
+    monkeypatch.setenv("TORCHIID_MEMORY_CHECK", "0")
+    with pytest.raises(MemoryLimitError, match="memory limit"):
+        decompose(img, p)
+    monkeypatch.delenv("TORCHIID_MEMORY_CHECK")
+    # a cap above what is left: what is left counts
+    monkeypatch.setenv("TORCHIID_MEMORY_LIMIT", str(100 * need / 1e9))
+    monkeypatch.setattr(model, "available_memory", lambda: need - 1)
+    with pytest.raises(MemoryLimitError, match="is available"):
+        decompose(img, p)
+
+
+def test_check_memory_takes_an_explicit_limit_over_the_environment(monkeypatch):
+    monkeypatch.setattr(model, "available_memory", lambda: None)
+    monkeypatch.setenv("TORCHIID_MEMORY_LIMIT", "1000")
+    p = Parameters()
+    need = memory_needed(3024, 4032, p)
+    check_memory(3024, 4032, p)  # under the environment's 1000 GB
+    check_memory(3024, 4032, p, limit=need)
+    with pytest.raises(MemoryLimitError, match=r"4032x3024 px at 512x384 px needs about"):
+        check_memory(3024, 4032, p, limit=need - 1)

@@ -142,3 +142,21 @@ def test_modules_and_parse_colour(scene):
     assert edit.parse_colour("0.5,0.5,1") == (0.5, 0.5, 1.0)
     with pytest.raises(edit.ParameterError):
         edit.parse_colour("purple-ish")
+
+
+@pytest.mark.parametrize("sigma", [8.0, 20.0, 45.0])
+def test_a_wide_gaussian_runs_at_a_lower_resolution_and_matches_the_exact_one(sigma):
+    import math
+
+    import kornia
+
+    x = mondrian(240, 320, seed=3).image.double()
+    x = x + 0.1 * torch.rand(x.shape, generator=torch.Generator().manual_seed(0), dtype=x.dtype)
+    k = 2 * math.ceil(3 * sigma) + 1
+    exact = kornia.filters.gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="replicate")
+    fast = edit.gaussian(x, sigma)
+    span = float(x.max() - x.min())
+    assert float((fast - exact).abs().max()) < 0.003 * span
+    if sigma >= 2 * edit.FAST_SIGMA:  # a constant stays exactly constant
+        ones = torch.ones(1, 3, 50, 70, dtype=torch.float64)
+        torch.testing.assert_close(edit.gaussian(ones, sigma), ones, atol=1e-12, rtol=0)

@@ -17,9 +17,11 @@ if TYPE_CHECKING:
 
 __all__ = [
     "DEVICES",
+    "MEMORY_LIMIT_VARIABLE",
     "THREAD_VARIABLES",
     "add_parameter_options",
     "params_from_args",
+    "run_environment",
     "run_options",
     "say",
     "verbosity_options",
@@ -89,8 +91,25 @@ def run_options() -> argparse.ArgumentParser:
         help="CPU threads (torch and OpenMP; default: every core; with --workers: per worker, "
         "default cores / workers)",
     )
+    group.add_argument(
+        "--memory-limit",
+        type=_gigabytes,
+        metavar="GB",
+        help="refuse a photo whose decomposition would take more than GB of memory (default: "
+        "what the machine has left; also the environment variable TORCHIID_MEMORY_LIMIT)",
+    )
     _add_verbosity(group)
     return p
+
+
+def _gigabytes(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number of GB: {text!r}") from None
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a number of GB > 0, got {text}")
+    return value
 
 
 def add_parameter_options(p: argparse.ArgumentParser) -> None:
@@ -136,10 +155,17 @@ def say(args: argparse.Namespace, message: str) -> None:
         print(message, file=sys.stderr)
 
 
-def thread_environment(threads: int | None) -> dict[str, str | None]:
-    """Set :data:`THREAD_VARIABLES` to ``threads``; returns their previous values."""
-    previous = {name: os.environ.get(name) for name in THREAD_VARIABLES}
+#: the memory cap of every decomposition (GB), read by :func:`torchiid.core.memory.memory_limit`;
+#: an environment variable, so that worker processes inherit it
+MEMORY_LIMIT_VARIABLE = "TORCHIID_MEMORY_LIMIT"
+
+
+def run_environment(threads: int | None, memory_gb: float | None) -> dict[str, str | None]:
+    """Set :data:`THREAD_VARIABLES` to ``threads`` and the memory cap; returns previous values."""
+    previous = {name: os.environ.get(name) for name in (*THREAD_VARIABLES, MEMORY_LIMIT_VARIABLE)}
     if threads is not None:
         for name in THREAD_VARIABLES:
             os.environ[name] = str(threads)
+    if memory_gb is not None:
+        os.environ[MEMORY_LIMIT_VARIABLE] = repr(memory_gb)
     return previous

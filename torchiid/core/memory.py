@@ -7,7 +7,17 @@ import ctypes.util
 import os
 import sys
 
-__all__ = ["available_memory", "undo_malloc_trim_threshold"]
+from torchiid.core.exceptions import ParameterError
+
+__all__ = [
+    "MEMORY_LIMIT_VARIABLE",
+    "available_memory",
+    "memory_limit",
+    "undo_malloc_trim_threshold",
+]
+
+#: the environment variable of a user's memory cap, in GB (``TORCHIID_MEMORY_LIMIT=4``)
+MEMORY_LIMIT_VARIABLE = "TORCHIID_MEMORY_LIMIT"
 
 #: a cgroup memory limit at or above this means "no limit" (cgroup v1 reports 2^63 - 4096)
 _NO_LIMIT = 1 << 60
@@ -68,6 +78,37 @@ def available_memory(
     if left is not None:
         known.append(left)
     return min(known) if known else None
+
+
+def memory_limit(gigabytes: str | float | None = None) -> int | None:
+    """The memory cap a user set, in bytes: at most this much for one decomposition.
+
+    Args:
+        gigabytes: the cap in GB (10^9 bytes), a number or its text (``"2.5"``); by default
+            the value of the environment variable ``TORCHIID_MEMORY_LIMIT``. Unset, empty or
+            0 means no cap.
+
+    Returns:
+        bytes, or ``None`` for no cap.
+
+    Raises:
+        ParameterError: the value is not a number of GB >= 0 (the message names where it
+            came from).
+    """
+    where = "the memory limit"
+    if gigabytes is None:
+        gigabytes = os.environ.get(MEMORY_LIMIT_VARIABLE, "")
+        where = MEMORY_LIMIT_VARIABLE
+    text = str(gigabytes).strip()
+    if text == "":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value >= 0 or value == float("inf"):
+        raise ParameterError(f"{where} must be a number of GB >= 0 (e.g. 4 or 2.5), got {text!r}")
+    return None if value == 0 else int(value * 1e9)
 
 
 def _read_text(path: str | os.PathLike) -> str | None:

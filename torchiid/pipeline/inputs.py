@@ -83,7 +83,7 @@ def working_inputs(
     big_h, big_w = image.shape[-2:]
     if image.device.type == "cpu":
         flags = {"return_stage1": return_stage1, "return_iterations": return_iterations}
-        check_memory(image.shape[0], big_h, big_w, params, **flags)
+        check_memory(big_h, big_w, params, image.shape[0], **flags)
     size = working_size(big_h, big_w, params.output.max_side)
     img, msk = _downsampled(image, mask, size)
     if min(size) < params.features.patch_size:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 
 from torchiid.core.exceptions import MemoryLimitError
-from torchiid.core.memory import available_memory
+from torchiid.core.memory import MEMORY_LIMIT_VARIABLE, available_memory, memory_limit
 from torchiid.params import Parameters
 from torchiid.priors.reflectance_terms import REPLAY_STEPS
 from torchiid.resample import working_size
@@ -71,16 +71,53 @@ def _gb(n: float) -> str:
     return f"{n / 1e9:.2f} GB" if n < 10e9 else f"{n / 1e9:.1f} GB"
 
 
-def check_memory(batch: int, height: int, width: int, params: Parameters, **flags: bool) -> None:
-    """Refuse, before any work, a CPU decomposition that cannot fit in the memory left."""
-    if os.environ.get(MEMORY_CHECK_VARIABLE, "1").strip().lower() in ("0", "off", "false", "no"):
-        return
+def check_memory(
+    height: int,
+    width: int,
+    params: Parameters | None = None,
+    batch: int = 1,
+    *,
+    limit: int | None = None,
+    return_stage1: bool = False,
+    return_iterations: bool = False,
+) -> None:
+    """Refuse, before any work, a CPU decomposition that cannot fit in the memory it may take.
+
+    What it may take is what the machine has left (:func:`~torchiid.core.memory.available_memory`),
+    or less: a cap the user set (``limit``, else ``TORCHIID_MEMORY_LIMIT`` in GB, see
+    :func:`~torchiid.core.memory.memory_limit`). :func:`~torchiid.model.decompose` runs this
+    check itself (without ``limit``); an application that holds a cap of its own calls it first
+    with it. ``TORCHIID_MEMORY_CHECK=0`` switches off the comparison with what the machine has
+    left; a cap the user set still holds.
+
+    Args:
+        height: the photo's height in pixels.
+        width: its width.
+        params: the parameters (their working resolution and solvers count).
+        batch: images decomposed together.
+        limit: a cap in bytes (``None``: ``TORCHIID_MEMORY_LIMIT``, if set).
+        return_stage1: the decomposition is asked to keep the Stage 1 layers.
+        return_iterations: and every alternation's layers.
+
+    Raises:
+        MemoryLimitError: the estimate (:func:`memory_needed`) is over the cap or what is
+            left; the message gives both figures and what to change.
+        ParameterError: ``TORCHIID_MEMORY_LIMIT`` is not a number of GB.
+    """
+    params = params if params is not None else Parameters()
+    cap = memory_limit() if limit is None else limit
+    flags = {"return_stage1": return_stage1, "return_iterations": return_iterations}
     need = memory_needed(height, width, params, batch, **flags)
-    try:
-        have = available_memory()
-    except Exception:  # noqa: BLE001 - the check must never be what breaks a decomposition
-        have = None
-    if have is None or need <= have:
+    have = None
+    switch = os.environ.get(MEMORY_CHECK_VARIABLE, "1").strip().lower()
+    if switch not in ("0", "off", "false", "no"):
+        try:
+            have = available_memory()
+        except Exception:  # noqa: BLE001 - the check must never be what breaks a decomposition
+            have = None
+    capped = cap is not None and (have is None or cap <= have)
+    budget = cap if capped else have
+    if budget is None or need <= budget:
         return
     h, w = working_size(height, width, params.output.max_side)
     where = "at full resolution" if (h, w) == (height, width) else f"at {w}x{h} px"
@@ -91,11 +128,16 @@ def check_memory(batch: int, height: int, width: int, params: Parameters, **flag
         at_default = params.replace(max_side=default_side)
         fit = memory_needed(height, width, at_default, batch, **flags)
         what = f"--max-side {default_side}, the default (max_side in Python)"
-        if fit <= have:
+        if fit <= budget:
             hint = f"with {what}, it needs about {_gb(fit)}; "
         else:
             hint = f"even with {what}, it needs about {_gb(fit)}; "
+    needs = f"decomposing {many}{width}x{height} px {where} needs about {_gb(need)} of memory"
+    if capped:
+        raise MemoryLimitError(
+            f"{needs}, over the memory limit of {_gb(budget)}; {hint}raise the limit "
+            f"(--memory-limit GB, or {MEMORY_LIMIT_VARIABLE}) to try it"
+        )
     raise MemoryLimitError(
-        f"decomposing {many}{width}x{height} px {where} needs about {_gb(need)} of memory "
-        f"and {_gb(have)} is available; {hint}set {MEMORY_CHECK_VARIABLE}=0 to try anyway"
+        f"{needs} and {_gb(have)} is available; {hint}set {MEMORY_CHECK_VARIABLE}=0 to try anyway"
     )

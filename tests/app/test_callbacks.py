@@ -1,0 +1,192 @@
+"""The page's callbacks called as plain functions: outputs, downloads and error messages."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+
+import cv2
+import numpy as np
+import pytest
+
+gr = pytest.importorskip("gradio")
+
+import torchiid.app.callbacks as callbacks  # noqa: E402
+from torchiid.app.callbacks import (  # noqa: E402
+    COMPARE,
+    EDIT_FIELDS,
+    Callbacks,
+    Selection,
+    forget,
+    settings_from,
+)
+from torchiid.app.config import AppConfig  # noqa: E402
+from torchiid.app.edits import EditSettings  # noqa: E402
+from torchiid.app.files import ServerFolder, layer_names  # noqa: E402
+from torchiid.cli import main  # noqa: E402
+from torchiid.io import load_image  # noqa: E402
+
+DEFAULTS = [getattr(EditSettings(), name) for name in EDIT_FIELDS]
+
+
+@pytest.fixture
+def calls(tmp_path):
+    folder = ServerFolder(tmp_path)
+    yield Callbacks(AppConfig(iterations=1), folder)
+    folder.remove()
+
+
+def _values(**changes) -> list:
+    return [changes.get(name, value) for name, value in zip(EDIT_FIELDS, DEFAULTS, strict=True)]
+
+
+def _click(x: int, y: int):
+    return gr.SelectData(None, {"index": [x, y], "value": None})
+
+
+def test_decompose_returns_the_session_the_three_views_and_the_run_info(calls, photos):
+    seen = []
+    out = calls.decompose(
+        str(photos["chelsea"]), "default", 1, 512, None, progress=lambda f, desc: seen.append(desc)
+    )
+    session, photo, refl, shading, info = out
+    assert session.name == "chelsea.png"
+    for view in (photo, refl, shading):
+        assert view.shape == (150, 200, 3) and view.dtype == np.uint8
+    assert (shading[..., 0] == shading[..., 1]).all()  # the shading is gray
+    assert np.abs(refl.astype(int) - photo.astype(int)).mean() > 5
+    assert "**chelsea.png**: 200×150 px" in info and "1 alternation," in info
+    assert "| total |" in info and "- shading 1:" in info
+    assert seen[0] == "reading the photo" and "alternation 1 of 1" in seen
+
+
+@pytest.mark.parametrize(
+    "name, expected",
+    [
+        ("text", "notes.txt: is not an image"),
+        ("truncated", "truncated.jpg: is truncated or corrupt"),
+        ("tiny", "tiny.png: is 1x1 px; at least 60 px per side is needed"),
+    ],
+)
+def test_a_bad_file_is_a_one_line_message_naming_it(calls, photos, name, expected):
+    with pytest.raises(gr.Error) as err:
+        calls.decompose(str(photos[name]), "default", 1, 512)
+    message = err.value.message
+    assert message.startswith(expected) and "\n" not in message
+    assert str(photos[name].parent) not in message  # the file's name, not the upload folder
+    assert err.value.duration is None  # it stays until it is closed
+
+
+def test_a_photo_over_the_memory_limit_says_the_limit_and_how_to_raise_it(tmp_path, photos):
+    folder = ServerFolder(tmp_path)
+    calls = Callbacks(AppConfig(memory_limit=100_000_000), folder)
+    with pytest.raises(gr.Error) as err:
+        calls.decompose(str(photos["small"]), "default", 1, 512)
+    message = err.value.message
+    assert "96x64 px at full resolution needs about" in message
+    assert "over the memory limit of 0.10 GB" in message and "--memory-limit GB" in message
+    folder.remove()
+
+
+def test_no_photo_and_bad_settings_are_messages_too(calls, photos):
+    with pytest.raises(gr.Error, match="choose a photo file first"):
+        calls.decompose(None, "default", 1, 512)
+    with pytest.raises(gr.Error, match="unknown preset 'nope'"):
+        calls.decompose(str(photos["small"]), "nope", 1, 512)
+    with pytest.raises(gr.Error, match="iterations must be > 0"):
+        calls.decompose(str(photos["small"]), "default", 0, 512)
+
+
+def test_an_unexpected_error_is_one_line_too(calls, chelsea_session, monkeypatch):
+    def broken(*args, **kwargs):
+        raise RuntimeError("the GPU caught fire\nsecond line")
+
+    monkeypatch.setattr(callbacks, "render", broken)
+    with pytest.raises(gr.Error) as err:
+        calls.preview(chelsea_session, None, COMPARE[0], *DEFAULTS)
+    assert err.value.message == "internal error (RuntimeError: the GPU caught fire second line)"
+
+
+def test_preview_compares_the_photo_with_the_edited_layers(calls, chelsea_session):
+    s = chelsea_session
+    before, after = calls.preview(s, None, COMPARE[0], *DEFAULTS)
+    assert before.shape == after.shape == (150, 200, 3)
+    assert np.abs(before.astype(int) - after.astype(int)).max() <= 1  # nothing edited
+    _, softer = calls.preview(s, None, COMPARE[0], *_values(soften=0.9))
+    assert softer.mean() > before.mean() + 5
+    _, refl = calls.preview(s, None, COMPARE[1], *DEFAULTS)
+    _, shading = calls.preview(s, None, COMPARE[2], *DEFAULTS)
+    assert (shading[..., 0] == shading[..., 1]).all() and not (refl == before).all()
+    assert calls.preview(None, None, COMPARE[0], *DEFAULTS) == gr.skip()  # no photo yet
+    with pytest.raises(gr.Error, match="cannot read the colour"):
+        calls.preview(s, None, COMPARE[0], *_values(tint="warmish", tint_strength=0.5))
+
+
+def test_a_click_selects_the_object_under_it_and_the_size_slider_grows_it(calls, chelsea_session):
+    s = chelsea_session
+    selection, photo, size, status = calls.select(s, _click(100, 75))
+    assert isinstance(selection, Selection) and len(selection.candidates) >= 2
+    assert size["maximum"] == len(selection.candidates) - 1 and size["value"] == 0
+    assert status.startswith("Selected: ") and "object 1 of" in status
+    assert photo.shape == (150, 200, 3) and photo.mean() < callbacks.srgb8(s.preview.image).mean()
+    shares = []
+    for i in range(len(selection.candidates)):
+        selection, _, status = calls.resize_selection(s, selection, i)
+        shares.append(float(status.split()[1].rstrip("%")))
+    assert shares == sorted(shares) and shares[-1] > shares[0]
+    # a hue edit changes the selected object only
+    small = Selection(selection.candidates, 0)
+    _, before = calls.preview(s, None, COMPARE[0], *_values(hue=150))
+    _, after = calls.preview(s, small, COMPARE[0], *_values(hue=150))
+    mask = s.objects.mask(small.proposal, s.preview.size)[0, 0].numpy()
+    changed = np.abs(before.astype(int) - after.astype(int)).max(-1) > 2
+    assert changed[mask].mean() > 0.5 and not changed[~mask].any()
+    cleared, photo, status = calls.clear_selection(s)
+    assert cleared is None and (photo == callbacks.srgb8(s.preview.image)).all()
+
+
+def test_the_layers_zip_holds_the_files_the_cli_writes(calls, chelsea_session, photos, tmp_path):
+    zip_path = calls.layers_zip(chelsea_session)
+    assert zip_path.endswith("chelsea-layers.zip")
+    with zipfile.ZipFile(zip_path) as zf:
+        names = zf.namelist()
+        zf.extractall(tmp_path / "app")
+    assert names == layer_names("chelsea")
+    out = tmp_path / "cli"
+    argv = ["decompose", str(photos["chelsea"]), "-o", str(out), "--save-stage1"]
+    assert main([*argv, "--iterations", "2", "--no-progress"]) == 0
+    cli_names = sorted(p.name for p in out.iterdir() if p.name != "manifest.jsonl")
+    assert sorted(names) == cli_names
+    # the same decomposition: the exact reflectance is the CLI's, code for code
+    for name in ("chelsea-reflectance-linear16.png", "chelsea-shading.png"):
+        app = cv2.imread(str(tmp_path / "app" / name), cv2.IMREAD_UNCHANGED)
+        cli = cv2.imread(str(out / name), cv2.IMREAD_UNCHANGED)
+        assert np.array_equal(app, cli), name
+    info = json.loads((tmp_path / "app" / "chelsea-info.json").read_text())
+    assert info["written_by"] == "torchiid app" and "chelsea-sigma.exr" in info["files"]
+    folder = chelsea_session.cache["folder"]
+    assert folder.parent == calls.folder.sessions
+    forget(chelsea_session)
+    assert not folder.exists()
+
+
+def test_the_edited_photo_comes_at_full_resolution(calls, photos):
+    session = calls.decompose(str(photos["coffee"]), "default", 1, 150)[0]
+    assert session.preview.size == (100, 150)
+    path = calls.full_resolution(session, None, *_values(soften=0.5))
+    assert path.endswith("coffee600-edited.png")
+    edited = load_image(path).image
+    assert edited.shape == (3, 400, 600)
+    assert float(edited.mean()) > float(session.full.image.mean()) + 0.02
+    plain = load_image(calls.full_resolution(session, None, *DEFAULTS)).image
+    assert float((plain - session.full.image).abs().max()) < 0.01  # 8-bit rounding
+    folder = session.cache["folder"]
+    forget(session)
+    assert not folder.exists()
+
+
+def test_settings_from_the_controls_values():
+    s = settings_from(_values(hue=30, merge=0, texture="/x/t.png", tint=None, scale=None))
+    assert s == EditSettings(merge=False, hue=30.0, texture="/x/t.png")
+    with pytest.raises(Exception, match="expected 11 edit values"):
+        settings_from([1, 2])

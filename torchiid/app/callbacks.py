@@ -1,0 +1,293 @@
+"""The page's callbacks: plain functions from the controls' values to the outputs' values.
+
+Each takes what Gradio passes (file paths, numbers, the tab's :class:`Session` from a
+``gr.State``) and returns what the output components show (uint8 images, Markdown, file
+paths), so the tests call them directly. Every error a user can cause (a file that is not a
+photo, a photo over the memory limit, a bad value) reaches the page as a ``gr.Error`` with
+the library's one-line message; an unexpected one as a one-line "internal error" (its
+traceback goes to the server's log), never as a traceback in the page.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import shutil
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import gradio as gr
+import numpy as np
+
+from torchiid.app.config import AppConfig
+from torchiid.app.edits import EditSettings, render
+from torchiid.app.files import ServerFolder, write_edited, write_layers_zip
+from torchiid.app.objects import highlight
+from torchiid.app.session import Session, open_photo, srgb8, view_shading
+from torchiid.core.exceptions import TorchiidError, one_line
+from torchiid.params import Parameters
+
+__all__ = [
+    "COMPARE",
+    "EDIT_FIELDS",
+    "Callbacks",
+    "Selection",
+    "forget",
+    "settings_from",
+]
+
+log = logging.getLogger("torchiid")
+
+#: the edit controls, in the order the page passes their values
+EDIT_FIELDS = tuple(f.name for f in fields(EditSettings))
+#: what the before/after slider compares the photo with
+COMPARE = ("edited photo", "edited reflectance", "edited shading")
+
+
+@dataclass(frozen=True)
+class Selection:
+    """The selected object: the proposals under the click and which of them is chosen."""
+
+    candidates: tuple[int, ...]
+    index: int = 0
+
+    @property
+    def proposal(self) -> int:
+        """The chosen proposal."""
+        return self.candidates[min(max(self.index, 0), len(self.candidates) - 1)]
+
+
+def settings_from(values: Sequence[Any]) -> EditSettings:
+    """:class:`EditSettings` from the edit controls' values, in :data:`EDIT_FIELDS` order."""
+    if len(values) != len(EDIT_FIELDS):
+        raise TorchiidError(f"expected {len(EDIT_FIELDS)} edit values, got {len(values)}")
+    given = dict(zip(EDIT_FIELDS, values, strict=True))
+    defaults = EditSettings()
+    for name in ("tint_strength", "intensity", "soften", "hue", "chroma", "scale"):
+        given[name] = float(getattr(defaults, name) if given[name] is None else given[name])
+    given["merge"], given["flatten"] = bool(given["merge"]), bool(given["flatten"])
+    given["tint"] = given["tint"] or defaults.tint
+    given["fit"] = given["fit"] or defaults.fit
+    given["texture"] = str(given["texture"]) if given["texture"] else None
+    return EditSettings(**given)
+
+
+def _message(exc: BaseException, uploads: dict[str, str]) -> str:
+    """The error's one line, with the upload folder's paths replaced by the files' names."""
+    text = one_line(str(exc))
+    for path, name in uploads.items():
+        text = text.replace(path, name)
+    return text
+
+
+def _user_errors(fn: Callable) -> Callable:
+    """Turn a callback's errors into one-line messages in the page (``gr.Error``)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        uploads = {str(a): Path(a).name for a in args if isinstance(a, str) and a}
+        try:
+            return fn(*args, **kwargs)
+        except gr.Error:
+            raise
+        except TorchiidError as exc:
+            raise gr.Error(_message(exc, uploads), duration=None, print_exception=False) from None
+        except Exception as exc:  # noqa: BLE001 - one line in the page, the traceback in the log
+            log.error("torchiid app: %s failed", fn.__name__, exc_info=exc)
+            text = f"internal error ({type(exc).__name__}: {_message(exc, uploads)})"
+            raise gr.Error(text, duration=None, print_exception=False) from None
+
+    return wrapper
+
+
+def _no_photo() -> gr.Error:
+    return gr.Error("open a photo first", duration=5, print_exception=False)
+
+
+def _markdown(info: dict[str, Any]) -> str:
+    """The run's info as Markdown: sizes, seconds per step and the solvers' reports."""
+    w, h = info["size"]
+    ww, wh = info["working_size"]
+    lines = [
+        f"**{info['input']}**: {w}×{h} px ({info['bit_depth']}-bit, EXIF orientation "
+        f"{info['exif_orientation']}), decomposed at {ww}×{wh} px, {info['iterations']} "
+        f"alternation{'s' if info['iterations'] != 1 else ''}, in {info['seconds']:.1f} s; "
+        f"shading white {info['shading_white']:.3g}, "
+        f"albedo excess {info['albedo_excess']:.2%}",
+        "",
+        "| step | seconds |",
+        "| --- | --- |",
+        *(f"| {name} | {sec:.2f} |" for name, sec in info["times"].items()),
+        "",
+        "Solvers" + (" (all converged):" if info["converged"] else ":"),
+        "",
+        *(f"- {line}" for line in info["solves"]),
+    ]
+    return "\n".join(lines)
+
+
+class Callbacks:
+    """The callbacks of one server: its configuration and its temporary folder.
+
+    Args:
+        config: the server's :class:`AppConfig`.
+        folder: the server's :class:`~torchiid.app.files.ServerFolder`.
+    """
+
+    def __init__(self, config: AppConfig, folder: ServerFolder) -> None:
+        self.config = config
+        self.folder = folder
+
+    @_user_errors
+    def decompose(
+        self,
+        photo: str | None,
+        preset: str,
+        iterations: float,
+        max_side: float,
+        previous: Session | None = None,
+        progress: Any = gr.Progress(),  # noqa: B008 - Gradio's way of asking for a progress bar
+    ) -> tuple[Session, np.ndarray, np.ndarray, np.ndarray, str]:
+        """Read and decompose the photo: the session, photo, reflectance, shading and info."""
+        if not photo:
+            raise gr.Error("choose a photo file first", duration=5, print_exception=False)
+        params = Parameters.preset(preset or "default").replace(
+            iterations=int(iterations), max_side=int(max_side)
+        )
+        forget(previous)
+
+        def report(fraction: float, message: str) -> None:
+            progress(fraction, desc=message)
+
+        session = open_photo(
+            photo,
+            params,
+            name=Path(photo).name,
+            device=self.config.device,
+            memory_limit=self.config.memory_limit,
+            progress=report,
+        )
+        p = session.preview
+        white = float(session.result.shading_white[0])
+        return (
+            session,
+            srgb8(p.image),
+            srgb8(p.reflectance),
+            srgb8(view_shading(p.shading, white)),
+            _markdown(session.info),
+        )
+
+    @_user_errors
+    def details(self, session: Session | None) -> tuple[list, None, Any, str]:
+        """After a decomposition: the gallery, no selection, the size slider, the hint."""
+        if session is None:
+            raise _no_photo()
+        hint = "Click an object in the photo to select it."
+        return session.gallery, None, gr.update(value=0, maximum=1), hint
+
+    @_user_errors
+    def layers_zip(self, session: Session | None) -> str:
+        """Write the layers (the CLI's files) as a zip; its path."""
+        if session is None:
+            raise _no_photo()
+        return str(write_layers_zip(session, self._downloads(session)))
+
+    @_user_errors
+    def preview(
+        self, session: Session | None, selection: Selection | None, compare: str, *values: Any
+    ) -> tuple[np.ndarray, np.ndarray] | Any:
+        """The edits at the preview resolution: ``(photo, edited view)`` for the slider.
+
+        Before a photo is open the controls can move: nothing changes then.
+        """
+        if session is None:
+            return gr.skip()
+        settings = settings_from(values)
+        proposal = None if selection is None else selection.proposal
+        edited = render(session, settings, proposal)
+        white = float(session.result.shading_white[0])
+        shown = {
+            COMPARE[0]: edited.image,
+            COMPARE[1]: edited.reflectance,
+            COMPARE[2]: view_shading(edited.shading, white),
+        }[compare if compare in COMPARE else COMPARE[0]]
+        return srgb8(session.preview.image), srgb8(shown)
+
+    @_user_errors
+    def select(
+        self, session: Session | None, evt: gr.SelectData
+    ) -> tuple[Selection, np.ndarray, Any, str]:
+        """A click on the photo: the objects under it, the smallest selected."""
+        if session is None or session.objects is None:
+            raise _no_photo()
+        h, w = session.preview.size
+        x, y = evt.index[0], evt.index[1]
+        candidates = session.objects.under((x + 0.5) / w, (y + 0.5) / h)
+        if not candidates:
+            return (
+                None,
+                srgb8(session.preview.image),
+                gr.update(value=0, maximum=1),
+                "No object there; click elsewhere.",
+            )
+        selection = Selection(tuple(candidates))
+        image, status = self._selected(session, selection)
+        return selection, image, gr.update(value=0, maximum=max(len(candidates) - 1, 1)), status
+
+    @_user_errors
+    def resize_selection(
+        self, session: Session | None, selection: Selection | None, index: float
+    ) -> tuple[Selection | None, np.ndarray, str]:
+        """The size slider: a larger or smaller object under the same click."""
+        if session is None:
+            raise _no_photo()
+        if selection is None:
+            return None, srgb8(session.preview.image), "Click an object in the photo first."
+        selection = Selection(selection.candidates, int(index))
+        image, status = self._selected(session, selection)
+        return selection, image, status
+
+    def clear_selection(self, session: Session | None) -> tuple[None, Any, str]:
+        """Forget the selection: the photo as it is."""
+        image = None if session is None else srgb8(session.preview.image)
+        return None, image, "Click an object in the photo to select it."
+
+    def _selected(self, session: Session, selection: Selection) -> tuple[np.ndarray, str]:
+        h, w = session.preview.size
+        mask = session.objects.mask(selection.proposal, (h, w))
+        share = float(mask.float().mean())
+        i, n = min(selection.index, len(selection.candidates) - 1) + 1, len(selection.candidates)
+        status = f"Selected: {share:.1%} of the photo (object {i} of {n} under the click)."
+        return highlight(srgb8(session.preview.image), mask), status
+
+    @_user_errors
+    def full_resolution(
+        self,
+        session: Session | None,
+        selection: Selection | None,
+        *values: Any,
+        progress: Any = gr.Progress(),  # noqa: B008
+    ) -> str:
+        """The edited photo at full resolution, as a PNG file; its path."""
+        if session is None:
+            raise _no_photo()
+        settings = settings_from(values)
+        progress(0.1, desc="editing at full resolution")
+        proposal = None if selection is None else selection.proposal
+        edited = render(session, settings, proposal, full=True)
+        progress(0.8, desc="writing the PNG")
+        return str(write_edited(session, edited.image, self._downloads(session)))
+
+    def _downloads(self, session: Session) -> Path:
+        """The session's download folder, made when it first writes one."""
+        if session.cache.get("folder") is None:
+            session.cache["folder"] = self.folder.session_folder()
+        return session.cache["folder"]
+
+
+def forget(session: Session | None) -> None:
+    """Remove a session's files (its downloads): a new photo replaces it, or its tab closed."""
+    if session is not None and session.cache.get("folder") is not None:
+        shutil.rmtree(session.cache.pop("folder"), ignore_errors=True)
