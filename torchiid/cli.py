@@ -32,7 +32,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from torchiid._version import __version__
-from torchiid.commands.common import run_options, run_environment, verbosity_options
+from torchiid.commands.common import run_environment, run_options, verbosity_options
 
 __all__ = ["COMMANDS", "Command", "build_parser", "main"]
 
