@@ -160,7 +160,7 @@ def _info(name: str, loaded: Any, result: Decomposition, params: Parameters, sec
         "bit_depth": loaded.bit_depth,
         "iterations": params.iterations,
         "shading_white": float(result.shading_white[0]),
-        "albedo_quantile": params.albedo_quantile,
+        "albedo_quantile": params.output.albedo_quantile,
         "albedo_excess": float(result.albedo_excess[0]),
         "seconds": round(seconds, 3),
         "times": {k: round(v, 3) for k, v in result.times.items()},

@@ -109,7 +109,7 @@ def build_app(config: AppConfig, folder: ServerFolder) -> gr.Blocks:
                 max_side = gr.Slider(
                     0,
                     2048,
-                    params.max_side,
+                    params.output.max_side,
                     step=32,
                     label="Working resolution: longer side in px (0: the photo's own)",
                     elem_id="max-side",
