@@ -37,9 +37,7 @@ def test_help_names_every_option(capsys):
     "argv, message",
     [
         (["--preset", "nope"], "unknown preset 'nope'"),
-        (["--memory-limit", "-1"], "the memory limit must be a number of GB"),
         (["--iterations", "0"], "--iterations must be >= 1"),
-        (["--threads", "0"], "--threads must be >= 1"),
     ],
 )
 def test_set_up_errors_end_in_one_line_before_serving(capsys, monkeypatch, argv, message):
@@ -50,6 +48,24 @@ def test_set_up_errors_end_in_one_line_before_serving(capsys, monkeypatch, argv,
     assert main(["app", *argv]) == 2
     err = capsys.readouterr().err
     assert err.startswith("torchiid: error: ") and message in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--memory-limit", "-1"], "argument --memory-limit: must be a number of GB > 0"),
+        (["--threads", "0"], "argument --threads: must be >= 1"),
+    ],
+)
+def test_bad_run_options_are_usage_errors(capsys, monkeypatch, argv, message):
+    def no_serving(*args, **kwargs):  # pragma: no cover - must not be reached
+        raise AssertionError("the server was started")
+
+    monkeypatch.setattr(app, "serve", no_serving)
+    with pytest.raises(SystemExit) as stop:
+        main(["app", *argv])
+    assert stop.value.code == 2
+    assert message in capsys.readouterr().err
 
 
 def test_the_options_reach_the_server(monkeypatch, capsys):

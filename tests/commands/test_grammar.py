@@ -8,6 +8,7 @@ fresh process: a property, not a timing; ``tools/bench_startup.py`` times it).
 import ast
 import importlib
 import json
+import os
 import re
 import subprocess
 import sys
@@ -170,6 +171,7 @@ MINIMAL = {
     "edit": ["merge", "x.png", "-o", "out"],
     "eval": ["mit", "data"],
     "features": ["x.png", "-o", "out"],
+    "app": [],
 }
 
 
@@ -212,6 +214,7 @@ def _argv(command: str, photo: Path, out: Path) -> list[str]:
         "edit": ["edit", "merge", str(photo / "cat.png"), "-o", str(out)],
         "eval": ["eval", "mit", str(photo), "-o", str(out)],
         "features": ["features", str(photo / "cat.png"), "-o", str(out)],
+        "app": ["app", "--port", "1"],
     }[command]
 
 
@@ -225,6 +228,8 @@ def _fail_early(monkeypatch, command: str, exc: BaseException) -> None:
         import torchiid.core.device
 
         monkeypatch.setattr(torchiid.core.device, "resolve_device", fail)
+    elif command == "app":
+        monkeypatch.setattr("torchiid.commands.app.gradio_installed", fail)
     else:
         module = next(c.module for c in COMMANDS if c.name == command)
         monkeypatch.setattr(f"torchiid.commands.{module}.params_from_args", fail)
@@ -368,3 +373,29 @@ def test_commands_are_registered_in_one_table():
     for command in COMMANDS:
         module = importlib.import_module(f"torchiid.commands.{command.module}")
         assert callable(module.add_arguments) and callable(module.run)
+
+
+# ----------------------------------------------------------------------------- memory limit
+
+
+def test_the_memory_limit_variable_is_the_one_the_library_reads():
+    from torchiid.commands.common import MEMORY_LIMIT_VARIABLE
+    from torchiid.core import memory
+
+    assert MEMORY_LIMIT_VARIABLE == memory.MEMORY_LIMIT_VARIABLE
+
+
+def test_decompose_refuses_a_photo_over_the_memory_limit_and_restores_the_variable(
+    photo, tmp_path, capsys, monkeypatch
+):
+    monkeypatch.delenv("TORCHIID_MEMORY_LIMIT", raising=False)
+    out = tmp_path / "out"
+    status = main(["decompose", str(photo / "cat.png"), "-o", str(out), "--memory-limit", "0.01"])
+    err = capsys.readouterr().err
+    assert status == 1
+    assert "over the memory limit of 0.01 GB" in err and "--memory-limit" in err
+    assert not out.exists()  # refused before any work: nothing written
+    assert "TORCHIID_MEMORY_LIMIT" not in os.environ
+    with pytest.raises(SystemExit) as stop:
+        main(["decompose", str(photo / "cat.png"), "-o", str(out), "--memory-limit", "0"])
+    assert stop.value.code == 2

@@ -241,7 +241,7 @@ def test_a_memory_limit_caps_what_is_available_and_the_message_says_how_to_raise
         raise AssertionError("the features were computed")
 
     monkeypatch.setattr(model, "semantic_features", no_work)
-    monkeypatch.setattr(model, "available_memory", lambda: 100 * need)
+    monkeypatch.setattr(memory, "available_memory", lambda: 100 * need)
     monkeypatch.setenv("TORCHIID_MEMORY_LIMIT", str((need - 1_000_000) / 1e9))
     with pytest.raises(MemoryLimitError) as err:
         decompose(img, p)
@@ -255,13 +255,13 @@ def test_a_memory_limit_caps_what_is_available_and_the_message_says_how_to_raise
     monkeypatch.delenv("TORCHIID_MEMORY_CHECK")
     # a cap above what is left: what is left counts
     monkeypatch.setenv("TORCHIID_MEMORY_LIMIT", str(100 * need / 1e9))
-    monkeypatch.setattr(model, "available_memory", lambda: need - 1)
+    monkeypatch.setattr(memory, "available_memory", lambda: need - 1)
     with pytest.raises(MemoryLimitError, match="is available"):
         decompose(img, p)
 
 
 def test_check_memory_takes_an_explicit_limit_over_the_environment(monkeypatch):
-    monkeypatch.setattr(model, "available_memory", lambda: None)
+    monkeypatch.setattr(memory, "available_memory", lambda: None)
     monkeypatch.setenv("TORCHIID_MEMORY_LIMIT", "1000")
     p = Parameters()
     need = memory_needed(3024, 4032, p)
