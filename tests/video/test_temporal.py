@@ -11,8 +11,8 @@ from torchiid.video import VideoDecomposer, VideoOptions, warp
 
 # The paper's shading weights (no S_s): frame by frame, their shading steps at the Mondrian's
 # chromaticity edges by an amount that changes from frame to frame, the flicker the video loop
-# is for. With S_s (the default) this sequence hardly flickers frame by frame (warping error
-# 0.00021 against 0.00260; documentation, Benchmarks page), so it cannot show what the loop removes.
+# is for. With S_s (the default) this sequence hardly flickers frame by frame (the warping
+# errors are on the documentation's Benchmarks page), so it cannot show what the loop removes.
 PARAMS = Parameters().replace(iterations=3, lambda_m=0.02, lambda_s=0.0)
 FAST = Parameters().replace(iterations=1, use_sc=False, use_sm=False, use_rm=False)
 
@@ -74,7 +74,6 @@ def test_temporal_consistency_on_the_moving_mondrian(sequence, frame_by_frame, o
 
 def test_with_the_default_shading_weights_the_loop_is_still_more_consistent(sequence):
     # with S_s this sequence hardly flickers frame by frame; the loop must not make it worse
-    # (measured, true flow: 0.00019 against 0.00021; estimated flow: 0.00093 against 0.00134)
     default = Parameters().replace(iterations=3)
     fb_true, fb_est, _ = scores(sequence, run(sequence, VideoOptions.frame_by_frame(), default))
     we_true, we_est, _ = scores(sequence, run(sequence, VideoOptions(), default))
@@ -94,7 +93,7 @@ def test_one_albedo_convention_for_the_sequence(sequence):
 @pytest.mark.parametrize("match_scale", [True, False])
 def test_a_linked_frame_takes_the_previous_frames_albedo_scale(sequence, match_scale):
     # the previous reflectance is remembered at half its scale; with match_scale the next frame
-    # follows it (measured with the true flow), without it the frame keeps its own quantile
+    # follows it (compared along the true flow), without it the frame keeps its own quantile
     first = VideoDecomposer(FAST)(sequence.images[0])
     half = first.reflectance * 0.5
     video = VideoDecomposer(FAST, VideoOptions(match_scale=match_scale))
