@@ -52,6 +52,7 @@ from torchiid.io.exr import read_exr as read_exr
 from torchiid.io.files import fail
 from torchiid.io.orientation import orient
 from torchiid.io.validate import check_non_negative, check_pixels
+from torchiid.io.write import Encoding as Encoding
 from torchiid.io.write import encode_codes as encode_codes
 from torchiid.io.write import save_codes as save_codes
 from torchiid.io.write import save_encoded as save_encoded
