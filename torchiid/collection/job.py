@@ -51,13 +51,7 @@ from torchiid.core.exceptions import (
 )
 from torchiid.core.stats import image_quantile
 from torchiid.io import load_image, load_mask, save_image
-from torchiid.io.layers import (
-    ExtraOutputs,
-    OutputError,
-    OutputSet,
-    layer_file_names,
-    write_layers,
-)
+from torchiid.io.layers import ExtraOutputs, OutputError, OutputSet, layer_file_names, write_layers
 from torchiid.model import decompose
 from torchiid.params import Parameters
 from torchiid.priors.shading_terms import pixel_confidence
