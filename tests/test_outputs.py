@@ -10,7 +10,6 @@ from torchiid.io import linear_to_srgb, srgb_to_linear
 from torchiid.model import decompose, full_resolution_layers
 from torchiid.params import Parameters
 from torchiid.priors.shading_terms import pixel_confidence
-from torchiid.resample import GuidedUpsampler, bilinear_rows, guided_upsample
 from torchiid.synthetic import mondrian
 
 FAST = Parameters.preset("default").replace(iterations=2)
@@ -56,31 +55,6 @@ def test_reflectance_of_a_photo_is_not_clipped():
 
 
 # ----------------------------------------------------------------------------- any size
-
-
-def test_bilinear_rows_equal_torch_interpolate():
-    g = torch.Generator().manual_seed(1)
-    x = torch.rand(2, 1, 13, 17, generator=g, dtype=torch.float64)
-    full = F.interpolate(x, size=(50, 41), mode="bilinear", align_corners=False)
-    for rows in (slice(0, 7), slice(7, 33), slice(33, 50)):
-        assert torch.allclose(bilinear_rows(x, (50, 41), rows), full[:, :, rows], atol=1e-12)
-
-
-def test_banded_guided_upsampling_equals_the_one_shot_filter():
-    g = torch.Generator().manual_seed(2)
-    low, guide_low = torch.rand(2, 1, 20, 30, generator=g), torch.rand(2, 1, 20, 30, generator=g)
-    guide = torch.rand(2, 1, 80, 120, generator=g)
-    # reference: the fast guided filter written out on whole images
-    up = GuidedUpsampler(low, guide_low, (80, 120))
-    a = F.interpolate(up.a, size=(80, 120), mode="bilinear", align_corners=False)
-    b = F.interpolate(up.b, size=(80, 120), mode="bilinear", align_corners=False)
-    ref = a * guide + b
-    out = guided_upsample(low, guide_low, guide)
-    assert torch.allclose(out, ref, atol=1e-5)
-    # bands of a few rows (forces many bands) give the same
-    bands = [slice(y, min(80, y + 7)) for y in range(0, 80, 7)]
-    banded = torch.cat([up.band(r, guide[:, :, r]) for r in bands], 2)
-    assert torch.allclose(banded, ref, atol=1e-5)
 
 
 def _edge_band(labels: torch.Tensor, width: int = 2) -> torch.Tensor:

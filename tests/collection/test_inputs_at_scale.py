@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -111,18 +112,34 @@ def test_two_inputs_with_one_key_are_refused_repeats_dropped(library):
         unique_keys(list_inputs([a, b]))  # named on their own, both are IMG_0001
 
 
-def test_ten_thousand_files_list_quickly(tmp_path):
-    folder = tmp_path / "many"
+def _listing_calls(folder, n):
+    """List ``n`` empty image files in ``folder``; the Python and C calls it takes."""
     folder.mkdir()
-    for i in range(10_000):
+    for i in range(n):
         (folder / f"{i:05d}.jpg").write_bytes(b"")
-    import time
+    count = 0
 
-    t0 = time.perf_counter()
-    items = unique_keys(list_inputs([folder], recursive=True))
-    assert len(items) == 10_000 and items[0].key == "00000"
-    assert time.perf_counter() - t0 < 5
-    assert os.path.basename(items[-1].path) == "09999.jpg" and Path(items[-1].path).parent == folder
+    def profile(frame, event, arg):
+        nonlocal count
+        count += event in ("call", "c_call")
+
+    sys.setprofile(profile)
+    try:
+        items = unique_keys(list_inputs([folder], recursive=True))
+    finally:
+        sys.setprofile(None)
+    assert len(items) == n and items[0].key == "00000"
+    assert os.path.basename(items[-1].path) == f"{n - 1:05d}.jpg"
+    assert Path(items[-1].path).parent == folder
+    return count
+
+
+def test_listing_grows_linearly_with_the_number_of_files(tmp_path):
+    # calls counted, not seconds: 4x the files may take at most 5x the calls (a quadratic
+    # step would take 16x); tools/bench_collection.py times the listing of 10,000 files
+    small = _listing_calls(tmp_path / "small", 500)
+    large = _listing_calls(tmp_path / "large", 2000)
+    assert large < 5 * small, (small, large)
 
 
 def test_globs_leave_out_the_output_folder(library, monkeypatch):

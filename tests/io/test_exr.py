@@ -97,7 +97,7 @@ def test_exr_write_is_atomic(tmp_path, monkeypatch):
     def boom(*args, **kwargs):
         raise OSError("disk full")
 
-    monkeypatch.setattr("torchiid.io.image.os.replace", boom)
+    monkeypatch.setattr("torchiid.io.write.os.replace", boom)
     with pytest.raises(OSError, match="disk full"):
         save_image(target, torch.zeros(3, 8, 8), "exr")
     assert target.read_bytes() == before

@@ -6,7 +6,6 @@ import sys
 import cv2
 import numpy as np
 import pytest
-import torch
 
 import torchiid
 from torchiid.cli import main
@@ -295,15 +294,6 @@ def test_a_broken_video_file_is_one_line(tmp_path, capsys):
     assert main(["decompose-video", str(clip), "-o", str(tmp_path / "out"), *FAST]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "clip.mp4: cannot open as a video" in err[0]
-
-
-def test_frames_helpers_keep_sizes(seq):
-    from torchiid.video.write import frame_file_names, frame_stem
-
-    assert frame_stem(0) == "frame-000001"
-    names = frame_file_names("frame-000001", save_npy=True)
-    assert "frame-000001-reflectance.npy" in names and not any("params" in n for n in names)
-    assert torch.is_tensor(seq.images)
 
 
 def test_a_folder_of_another_version_with_the_same_settings_resumes(tmp_path, monkeypatch):

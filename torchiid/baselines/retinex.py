@@ -18,8 +18,7 @@ Details that follow the reference ``color_retinex`` (learned from it, not copied
 - Only differences with both pixels inside the mask enter the Poisson equation. It is
   solved in float64 by CG (:func:`torchiid.solvers.pcg.pcg`) preconditioned with the
   pseudo-inverse of the *full-grid* Neumann Laplacian (FFT/DCT Poisson solver) restricted
-  to the masked pixels; it converges in ~10–25 iterations on MIT objects, where Jacobi
-  needs thousands.
+  to the masked pixels, which takes tens of iterations where Jacobi takes thousands.
   The solution is defined up to a constant per connected mask component; the gray
   reflectance is scaled so its maximum inside the mask is 1.
 - Defaults ``threshold_gray = 0.075``, ``threshold_color = 1.0`` are points of the

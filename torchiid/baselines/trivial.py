@@ -7,7 +7,9 @@ They give the reference rows of an evaluation: a method should beat both.
   reflectance = 1.
 
 Both satisfy ``reflectance * shading == image`` only for gray images; they are scoring
-references, not decompositions.
+references, not decompositions. Their layers are the same inside and outside any mask, so the
+``mask`` argument is unused; it is there so that every method has the signature
+``method(image, mask)``.
 """
 
 from __future__ import annotations
@@ -25,8 +27,7 @@ def reflectance_is_image(image: torch.Tensor, mask: torch.Tensor | None = None) 
 
     Args:
         image: linear RGB ``(B, 3, H, W)``.
-        mask: unused (the layers are the same inside and outside any mask); accepted so
-            every method has the signature ``method(image, mask)``.
+        mask: unused (see the module notes).
 
     Returns:
         ``reflectance`` a copy of ``image`` ``(B, 3, H, W)`` and ``shading`` ones
@@ -46,8 +47,7 @@ def shading_is_image(image: torch.Tensor, mask: torch.Tensor | None = None) -> B
 
     Args:
         image: linear RGB ``(B, 3, H, W)``.
-        mask: unused (the layers are the same inside and outside any mask); accepted so
-            every method has the signature ``method(image, mask)``.
+        mask: unused (see the module notes).
 
     Returns:
         ``reflectance`` ones ``(B, 3, H, W)`` and ``shading`` the channel mean of ``image``

@@ -52,7 +52,7 @@ from torchiid.core.exceptions import (
 )
 from torchiid.core.stats import image_quantile
 from torchiid.io import load_image, load_mask, save_image
-from torchiid.io.layers import OutputError, OutputSet, layer_file_names, write_layers
+from torchiid.io.layers import ExtraOutputs, OutputError, OutputSet, layer_file_names, write_layers
 from torchiid.model import decompose
 from torchiid.params import Parameters
 from torchiid.priors.shading_terms import pixel_confidence
@@ -416,8 +416,7 @@ def _write_outputs(
         info=info,
         params_json=params_json,
         mask=mask,
-        confidence=confidence,
-        save_npy=settings.save_npy,
+        extras=ExtraOutputs(npy=settings.save_npy, confidence=confidence),
         output_set=tx,
     )
     if sigma:

@@ -253,8 +253,8 @@ class OnnxFeatureExtractor:
         ``(B, 3, H, W)`` sRGB in ``[0, 1]`` -> ``(B, 1280, ceil(H/32), ceil(W/32))``; the
         output has the input's dtype and device (computed in float32).
 
-    Memory: onnxruntime's CPU arena keeps the largest activation buffers of a run (about
-    0.5 GB for the 1024x768 pass of a 512x384 photo's shared-mode features) for the next one.
+    Memory: onnxruntime's CPU arena keeps the largest activation buffers of a run (hundreds
+    of megabytes for a photo's shared-mode features) for the next one.
     By default each call shrinks it at its end, so that memory is not held through the
     solves that follow Stage 0 (the session and its weights stay cached); a loop of calls
     passes ``release_memory=False`` to all but its last.

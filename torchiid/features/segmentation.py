@@ -10,8 +10,8 @@ and a minimum component size.
 Two implementations compute it:
 
 - ``"opencv"``: ``cv2.ximgproc.segmentation.createGraphSegmentation`` (C++), shipped by the
-  ``opencv-contrib-python-headless`` wheel that torchiid depends on; 2.5–4× faster than
-  scikit-image's at 512×384 (the pipeline's segments step: 0.11 s against 0.41 s);
+  ``opencv-contrib-python-headless`` wheel that torchiid depends on, and several times faster
+  than scikit-image's (the figures are on the documentation's Method page);
 - ``"skimage"``: :func:`skimage.segmentation.felzenszwalb`, used when the installed OpenCV lacks
   the contrib modules (for example when plain ``opencv-python`` was installed over the contrib
   wheel; a warning is logged once).

@@ -1,22 +1,19 @@
 """Reading and writing images, and writing a decomposition's files.
 
-One loader knows bit depth, colour encoding and EXIF orientation (:mod:`torchiid.io.image`);
-:mod:`torchiid.io.layers` writes what ``torchiid decompose`` leaves in its output folder.
+One loader knows bit depth, colour encoding and EXIF orientation (:mod:`torchiid.io.image`,
+built from :mod:`~torchiid.io.decode`, :mod:`~torchiid.io.damage`,
+:mod:`~torchiid.io.orientation`, :mod:`~torchiid.io.bitdepth` and
+:mod:`~torchiid.io.validate`); :mod:`torchiid.io.write` saves images atomically;
+:mod:`torchiid.io.layers` writes what ``torchiid decompose`` leaves in its output folder, as
+one :mod:`output set <torchiid.io.output_set>`.
 """
 
-from torchiid.io.image import (
-    LoadedImage,
-    linear_to_srgb,
-    load_image,
-    load_mask,
-    read_exr,
-    save_codes,
-    save_image,
-    save_uint8,
-    srgb_to_linear,
-)
+from torchiid.core.colour import linear_to_srgb, srgb_to_linear
+from torchiid.io.exr import read_exr
+from torchiid.io.image import LoadedImage, load_image, load_mask
 from torchiid.io.inputs import IMAGE_SUFFIXES, collect_inputs
-from torchiid.io.layers import layer_file_names, write_layers
+from torchiid.io.layers import ExtraOutputs, layer_file_names, write_layers
+from torchiid.io.write import save_codes, save_image, save_uint8
 
 __all__ = [
     "LoadedImage",
@@ -28,6 +25,7 @@ __all__ = [
     "save_uint8",
     "save_codes",
     "srgb_to_linear",
+    "ExtraOutputs",
     "layer_file_names",
     "write_layers",
     "IMAGE_SUFFIXES",

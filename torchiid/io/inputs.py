@@ -5,7 +5,7 @@ found under, with ``/`` between folders. ``torchiid decompose`` writes the image
 ``OUT/<key>-reflectance.png`` etc., so the folder structure below each root is kept and two
 ``IMG_0001.jpg`` in different folders never write the same files. The roots:
 
-* a **file** named on its own: its own folder (key = the file's stem, as before);
+* a **file** named on its own: its own folder (key = the file's stem);
 * a **folder**: the folder (its image files; with ``recursive``, those of its subfolders too,
   hidden files and folders excepted, symbolic links to folders not followed);
 * a **glob** (``photos/*/*.jpg``, ``photos/**/*.png``; ``**`` matches any depth): the folder

@@ -22,13 +22,7 @@ import torch.nn.functional as F
 from torchiid.core.colour import linear_to_srgb
 from torchiid.core.exceptions import ParameterError, ShapeError
 
-__all__ = [
-    "FLOW_METHODS",
-    "estimate_flow",
-    "warp",
-    "occlusion_mask",
-    "resize_flow",
-]
+__all__ = ["FLOW_METHODS", "estimate_flow", "warp", "occlusion_mask", "resize_flow"]
 
 #: the flow estimators of :func:`estimate_flow`
 FLOW_METHODS = ("dis", "farneback")

@@ -23,11 +23,18 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from torchiid.core.exceptions import TorchiidError
-from torchiid.io import layer_file_names, write_layers
-from torchiid.io.layers import OutputError, OutputSet, srgb8_from_linear
+from torchiid.io.layers import (
+    ExtraOutputs,
+    layer_file_names,
+    panel_size,
+    preview_row,
+    srgb8_from_linear,
+    write_layers,
+)
+from torchiid.io.output_set import OutputError, OutputSet, check_target
+from torchiid.io.write import process_umask
 
 __all__ = [
     "frame_stem",
@@ -91,18 +98,10 @@ def write_frame(
         shading,
         shading_white=shading_white,
         info=info,
-        params_json=None,
         mask=mask,
-        save_npy=save_npy,
+        extras=ExtraOutputs(npy=save_npy),
         output_set=output_set,
     )
-
-
-def _panel(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-    x = x.detach().to("cpu", torch.float32)
-    if tuple(x.shape[-2:]) != size:
-        x = F.interpolate(x[None], size=size, mode="area")[0]
-    return x.expand(3, -1, -1)
 
 
 class PreviewWriter:
@@ -136,9 +135,7 @@ class PreviewWriter:
             raise TorchiidError(
                 "the MP4 preview needs PyAV: pip install 'torchiid[video]'"
             ) from None
-        s = min(1.0, PREVIEW_PANEL_SIDE / max(h, w))
-        ph, pw = max(2, round(h * s)), max(2, round(w * s))
-        self._panel = (ph, pw)
+        ph, pw = self._panel = panel_size(h, w, PREVIEW_PANEL_SIDE, minimum=2)
         fd, tmp = tempfile.mkstemp(prefix=".torchiid-preview-", suffix=".mp4", dir=self.path.parent)
         os.close(fd)
         self._tmp = Path(tmp)
@@ -167,11 +164,7 @@ class PreviewWriter:
         h, w = image.shape[-2:]
         if self._container is None:
             self._open(h, w)
-        size = self._panel
-        panels = [_panel(x, size) for x in (image, reflectance, shading_view)]
-        sep = torch.ones(3, size[0], 4)
-        row = torch.cat([panels[0], sep, panels[1], sep, panels[2]], dim=2)
-        rgb = srgb8_from_linear(row)
+        rgb = srgb8_from_linear(preview_row([image, reflectance, shading_view], self._panel))
         pad_h, pad_w = self._stream.height - rgb.shape[0], self._stream.width - rgb.shape[1]
         if pad_h or pad_w:
             rgb = np.pad(rgb, ((0, pad_h), (0, pad_w), (0, 0)), mode="edge")
@@ -195,11 +188,8 @@ class PreviewWriter:
             self._container.close()
             self._container = None
             target = self.path
-            if target.is_dir() and not target.is_symlink():
-                raise OutputError(f"{target}: is a folder; cannot replace it by an output")
-            if not self.overwrite and os.path.lexists(target):
-                raise OutputError(f"{target} exists; pass --overwrite to replace it")
-            os.chmod(self._tmp, 0o666 & ~_umask())
+            check_target(target, self.overwrite)
+            os.chmod(self._tmp, 0o666 & ~process_umask())
             os.replace(self._tmp, target)
             self._tmp = None
             return target
@@ -218,9 +208,3 @@ class PreviewWriter:
             with contextlib.suppress(OSError):
                 os.unlink(self._tmp)
             self._tmp = None
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask

@@ -1,0 +1,88 @@
+"""Checks, masks, safe division, the white level and the Gaussian filter of the edits."""
+
+from __future__ import annotations
+
+import math
+
+import kornia
+import torch
+import torch.nn.functional as F
+
+from torchiid.core.exceptions import ShapeError
+from torchiid.core.stats import image_quantile
+
+__all__ = ["default_blur", "gaussian"]
+
+#: the smallest denominator, shading level and light peak the edits divide by
+EPS = 1e-6
+
+
+def default_blur(height: int, width: int) -> float:
+    """The default Gaussian σ in pixels of the residue filters: 1% of the longer side, >= 1."""
+    return max(1.0, 0.01 * max(height, width))
+
+
+#: the largest σ in pixels that :func:`gaussian` applies at the image's own resolution
+FAST_SIGMA = 4.0
+
+
+def gaussian(x: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Separable Gaussian blur of ``(B, C, H, W)`` with σ in pixels (replicated borders).
+
+    A σ of at least twice :data:`FAST_SIGMA` is applied to a copy area-averaged by the
+    integer factor ``f = σ // FAST_SIGMA`` and brought back by bilinear interpolation, both
+    of which blur too (variances ``(f² − 1) / 12`` and about ``f² / 6`` px²), so the Gaussian
+    there has the rest; the borders are replicated at the image's own resolution first. A
+    blur whose kernel spans hundreds of pixels (the edits' residue filters on a 12-megapixel
+    photo) then costs about ``f²`` times fewer pixels and ``f`` times fewer taps, and differs
+    from the exact blur by at most 0.3% of the signal's range.
+    """
+    if sigma <= 0:
+        return x
+    f = int(sigma // FAST_SIGMA)
+    if f < 2:
+        k = 2 * math.ceil(3 * sigma) + 1
+        return kornia.filters.gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="replicate")
+    h, w = x.shape[-2:]
+    rest = math.sqrt(sigma * sigma - (f * f - 1) / 12 - f * f / 6) / f
+    # replicated borders at the image's own resolution, as the exact blur has them: a margin
+    # of the small kernel's reach, and a whole number of small pixels in all
+    pad = f * (math.ceil(3 * rest) + 1)
+    bottom, right = pad + (-(h + 2 * pad)) % f, pad + (-(w + 2 * pad)) % f
+    big = F.pad(x, (pad, right, pad, bottom), mode="replicate")
+    small = F.avg_pool2d(big, f)
+    up = F.interpolate(gaussian(small, rest), scale_factor=f, mode="bilinear", align_corners=False)
+    return up[..., pad : pad + h, pad : pad + w]
+
+
+def safe_div(a: torch.Tensor, b: torch.Tensor, default: float = 1.0) -> torch.Tensor:
+    """``a / b`` where ``|b| > EPS``, else ``default``."""
+    ok = b.abs() > EPS
+    return torch.where(ok, a / torch.where(ok, b, torch.ones_like(b)), torch.full_like(a, default))
+
+
+def check_layers(image: torch.Tensor, *others: torch.Tensor | None) -> None:
+    """Raise :class:`ShapeError` unless ``image`` is 4-D and every other layer matches its size."""
+    if image.dim() != 4:
+        raise ShapeError(f"expected a (B, C, H, W) tensor, got shape {tuple(image.shape)}")
+    for o in others:
+        if o is not None and (o.dim() != 4 or o.shape[-2:] != image.shape[-2:]):
+            raise ShapeError(
+                f"layer of shape {tuple(o.shape)} does not match the image {tuple(image.shape)}"
+            )
+
+
+def region(mask: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
+    """``(B, 1, H, W)`` bool mask (all-true when ``None``)."""
+    if mask is None:
+        return torch.ones_like(like[:, :1], dtype=torch.bool)
+    if mask.dim() == 3:
+        mask = mask[:, None] if mask.shape[0] == like.shape[0] and like.shape[0] > 1 else mask[None]
+    check_layers(like, mask)
+    return mask.to(like.device).bool().expand(like.shape[0], 1, -1, -1)
+
+
+def white_level(shading: torch.Tensor, q: float = 0.99) -> torch.Tensor:
+    """``(B, 1, 1, 1)`` ``q`` quantile of each image's shading luminance (>= EPS)."""
+    y = shading.mean(1, keepdim=True)
+    return image_quantile(y, q).clamp_min(EPS).view(-1, 1, 1, 1).to(shading)
