@@ -296,17 +296,18 @@ def test_a_broken_video_file_is_one_line(tmp_path, capsys):
     assert len(err) == 1 and "clip.mp4: cannot open as a video" in err[0]
 
 
-def test_a_folder_of_another_version_with_the_same_settings_resumes(tmp_path, monkeypatch):
-    import torchiid
-    from torchiid.commands.video import PARAMS_NAME, _check_same_settings, _params_json
+def test_a_folder_of_another_version_with_the_same_settings_resumes(tmp_path):
+    from torchiid.commands.video import _check_same_settings, _params_json
     from torchiid.core.exceptions import TorchiidError
     from torchiid.params import Parameters
     from torchiid.video import VideoOptions
+    from torchiid.video.write import PARAMS_NAME
 
     params, options = Parameters().replace(iterations=1), VideoOptions()
-    monkeypatch.setattr(torchiid, "__version__", "0.9.0")
-    (tmp_path / PARAMS_NAME).write_text(_params_json(params, options))
-    monkeypatch.undo()
+    written = json.loads(_params_json(params, options))
+    assert written["torchiid_version"] == written["params"]["torchiid_version"]
+    written["torchiid_version"] = written["params"]["torchiid_version"] = "0.9.0"
+    (tmp_path / PARAMS_NAME).write_text(json.dumps(written))
     _check_same_settings(tmp_path, params, options)  # the version is no setting
     with pytest.raises(TorchiidError, match="iterations 1 -> 2"):
         _check_same_settings(tmp_path, params.replace(iterations=2), options)
