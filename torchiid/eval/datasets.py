@@ -79,6 +79,14 @@ def _read(path: Path, srgb: bool | None = None) -> torch.Tensor:
     return srgb_to_linear(loaded.image) if decode else loaded.image
 
 
+def _read_file(path: Path, what: str, read: Callable[[Path], Any]) -> Any:
+    """``read(path)``; a file that cannot be read or parsed is a :class:`DatasetError`."""
+    try:
+        return read(path)
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"cannot read {what} {path}: {exc}") from exc
+
+
 def _read_mask(path: Path) -> torch.Tensor:
     try:
         return load_mask(path)
@@ -223,10 +231,7 @@ class IIWDataset(_LazyDataset[IIWSample]):
         """Read photo ``<id>.png`` (sRGB → linear) and ``<id>.json``."""
         image = _read(self.dir / f"{sample_id}.png", srgb=True)
         jpath = self.dir / f"{sample_id}.json"
-        try:
-            judgements = json.loads(jpath.read_text())
-        except (OSError, ValueError) as exc:
-            raise DatasetError(f"cannot read judgements {jpath}: {exc}") from exc
+        judgements = _read_file(jpath, "judgements", lambda p: json.loads(p.read_text()))
         mask = torch.ones(1, *image.shape[-2:], dtype=torch.bool)
         return IIWSample(sample_id, image, judgements, mask)
 
@@ -300,10 +305,7 @@ class SAWDataset(_LazyDataset[SAWSample]):
         """Read photo (sRGB → linear) and label map."""
         image = _read(self.image_dir / f"{sample_id}.png", srgb=True)
         lpath = self.label_dir / f"{sample_id}.npy"
-        try:
-            raw = np.load(lpath, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise DatasetError(f"cannot read SAW labels {lpath}: {exc}") from exc
+        raw = _read_file(lpath, "SAW labels", lambda p: np.load(p, allow_pickle=False))
         if raw.shape != tuple(image.shape[-2:]):
             raise DatasetError(
                 f"{lpath}: labels {raw.shape} do not match photo {tuple(image.shape[-2:])}"

@@ -67,12 +67,24 @@ class EvalOptions:
 
     def __post_init__(self) -> None:
         check_method(self.method)
-        if self.batch_size < 1:
-            raise ParameterError(f"batch_size must be >= 1, got {self.batch_size}")
-        if self.limit is not None and self.limit < 1:
-            raise ParameterError(f"limit must be >= 1, got {self.limit}")
-        if not self.delta >= 0:
-            raise ParameterError(f"delta must be >= 0, got {self.delta}")
+        check_ranges(self.batch_size, self.limit, self.delta)
+
+
+def check_ranges(batch_size: int, limit: int | None, delta: float, *, flags: bool = False) -> None:
+    """Raise :class:`ParameterError` for ``batch_size < 1``, ``limit < 1`` or a bad ``delta``.
+
+    ``flags``: name the values as the command line does (``--batch-size``), not as fields.
+    """
+
+    def name(field: str) -> str:
+        return f"--{field.replace('_', '-')}" if flags else field
+
+    if batch_size < 1:
+        raise ParameterError(f"{name('batch_size')} must be >= 1, got {batch_size}")
+    if limit is not None and limit < 1:
+        raise ParameterError(f"{name('limit')} must be >= 1, got {limit}")
+    if not delta >= 0:
+        raise ParameterError(f"{name('delta')} must be >= 0, got {delta}")
 
 
 #: the names of the options
