@@ -73,7 +73,7 @@ def _new_state(settings: RunSettings) -> WorkerState:
     from torchiid.core.device import resolve_device
     from torchiid.core.memory import undo_malloc_trim_threshold
 
-    undo_malloc_trim_threshold()  # Dask's nanny sets MALLOC_TRIM_THRESHOLD_ (2-4x slower)
+    undo_malloc_trim_threshold()  # Dask's nanny sets MALLOC_TRIM_THRESHOLD_: every tensor mmapped
     if settings.threads:
         torch.set_num_threads(settings.threads)
     device = resolve_device(settings.device)
