@@ -20,14 +20,15 @@ __all__ = ["EvalOptions"]
 class EvalOptions:
     """How an evaluation run goes: the method, where it writes, which images, resuming.
 
-    Construction checks the values; :class:`EvalRunner` checks what needs the file system
-    (the folders) and resolves the device.
+    Construction checks the values; :class:`~torchiid.eval.runner.EvalRunner` checks what
+    needs the file system (the folders) and resolves the device.
 
     Attributes:
-        method: one of :data:`METHODS`; ignored when ``results_dir`` is given.
+        method: one of :data:`~torchiid.eval.methods.METHODS`; ignored when ``results_dir``
+            is given.
         params: parameters of ``semantic`` (default: the ``default`` preset).
-        output: output folder (default: :func:`default_output_dir`, in the working
-            directory).
+        output: output folder (default:
+            :func:`~torchiid.eval.outputs.default_output_dir`, in the working directory).
         results_dir: score the layers in this folder (read with
             :func:`~torchiid.eval.results.load_layer`) instead of running ``method``; the
             run's method is then ``"results"``.
@@ -35,7 +36,8 @@ class EvalOptions:
             :class:`torch.device`.
         batch_size: images of equal size decomposed together.
         limit: evaluate only the first ``limit`` images of the set.
-        ids: ids to evaluate (a sequence or an id-list file), see :func:`open_dataset`.
+        ids: ids to evaluate (a sequence or an id-list file), see
+            :func:`~torchiid.eval.datasets.open_dataset`.
         input: MIT input image, ``"diffuse"`` or ``"original"``.
         delta: WHDR equality margin (``iiw``).
         resume: skip the ids already in ``results.csv``; if ``False``, an existing
