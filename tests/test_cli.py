@@ -1,272 +1,347 @@
+"""One grammar for every command: version, help, run options, exit statuses, verbosity.
+
+Also what makes the command line start at once: ``torchiid --help``, ``--version`` and every
+``torchiid COMMAND --help`` import neither torch nor the other heavy libraries (checked in a
+fresh process: a property, not a timing; ``tools/bench_startup.py`` times it).
+"""
+
+import ast
+import importlib
 import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
 
 import cv2
-import numpy as np
 import pytest
 from skimage import data
 
-from torchiid.cli import main
-from torchiid.params import Parameters
+import torchiid
+from torchiid.cli import COMMANDS, build_parser, main
+from torchiid.core.exceptions import TorchiidError
 
+ROOT = Path(__file__).resolve().parents[1]
 FAST = ["--iterations", "1", "--no-progress"]
+HEAVY = ("torch", "numba", "cv2", "kornia", "skimage", "onnxruntime", "av", "numpy", "scipy", "PIL")
+LONG = [c for c in COMMANDS if c.runs_long]
 
 
 @pytest.fixture(scope="module")
-def photos(tmp_path_factory):
-    d = tmp_path_factory.mktemp("photos")
+def photo(tmp_path_factory):
+    d = tmp_path_factory.mktemp("photo")
     cat = cv2.resize(data.chelsea(), (96, 72), interpolation=cv2.INTER_AREA)
-    coffee = cv2.resize(data.coffee(), (96, 72), interpolation=cv2.INTER_AREA)
     cv2.imwrite(str(d / "cat.png"), cat[..., ::-1])
-    cv2.imwrite(str(d / "coffee.jpg"), coffee[..., ::-1])
+    (d / "frames").mkdir()
+    cv2.imwrite(str(d / "frames" / "f1.png"), cat[..., ::-1])
     return d
 
 
-def test_decompose_writes_viewable_layers_and_parameters(photos, tmp_path):
+# ----------------------------------------------------------------------------- version
+
+
+def test_the_package_and_the_code_agree_on_a_version_of_at_least_1_0_0(capsys):
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert project["project"]["version"] == torchiid.__version__
+    major, minor, patch = torchiid.__version__.split(".")
+    assert (int(major), int(minor), int(patch)) >= (1, 0, 0)  # semantic versioning
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0
+    assert capsys.readouterr().out.strip() == f"torchiid {torchiid.__version__}"
+
+
+def test_files_record_the_version_that_wrote_them(photo, tmp_path):
     out = tmp_path / "out"
-    assert (
-        main(
-            [
-                "decompose",
-                str(photos / "cat.png"),
-                "-o",
-                str(out),
-                "--save-npy",
-                "--save-iterations",
-                *FAST,
-            ]
-        )
-        == 0
-    )
-    refl = cv2.imread(str(out / "cat-reflectance.png"), cv2.IMREAD_UNCHANGED)
-    shad = cv2.imread(str(out / "cat-shading.png"), cv2.IMREAD_UNCHANGED)
-    prev = cv2.imread(str(out / "cat-preview.png"), cv2.IMREAD_UNCHANGED)
-    assert refl.shape == (72, 96, 3) and refl.dtype == np.uint8
-    assert shad.shape[:2] == (72, 96) and prev.shape == (72, 3 * 96 + 8, 3)
-    lin = cv2.imread(str(out / "cat-reflectance-linear16.png"), cv2.IMREAD_UNCHANGED)
-    assert lin.dtype == np.uint16 and lin.shape == (72, 96, 3)
-    r = np.load(out / "cat-reflectance.npy")
-    s = np.load(out / "cat-shading.npy")
-    # the linear layers multiply back to the linear input
-    from torchiid.io import load_image
-
-    img = load_image(photos / "cat.png").image.permute(1, 2, 0).numpy()
-    assert s.shape == (72, 96)
-    assert np.allclose(r * s[..., None], img, atol=1e-5)
-    # the parameters file is the format --params reads back
-    params = Parameters.from_json(out / "cat-params.json")
-    assert params == Parameters.preset("default").replace(iterations=1)
-    assert (out / "cat-iter1-sigma.png").exists() and (out / "cat-iter1-R.png").exists()
-    assert not list(out.glob(".*"))  # no temporary files left behind
+    assert main(["decompose", str(photo / "cat.png"), "-o", str(out), *FAST]) == 0
+    info = json.loads((out / "cat-info.json").read_text())
+    line = json.loads((out / "manifest.jsonl").read_text().splitlines()[-1])
+    assert info["torchiid_version"] == line["torchiid_version"] == torchiid.__version__
+    argv = ["decompose", str(photo / "cat.png"), "--method", "retinex", "--no-progress"]
+    assert main([*argv, "-o", str(tmp_path / "retinex")]) == 0
+    params = json.loads((tmp_path / "retinex" / "cat-params.json").read_text())
+    assert params["torchiid_version"] == torchiid.__version__
 
 
-def test_existing_outputs_are_not_overwritten(photos, tmp_path, capsys):
-    out = tmp_path / "out"
-    assert main(["decompose", str(photos / "cat.png"), "-o", str(out), *FAST]) == 0
-    before = (out / "cat-reflectance.png").read_bytes()
-    assert main(["decompose", str(photos / "cat.png"), "-o", str(out), *FAST]) == 0
-    assert "0 done, 1 skipped" in capsys.readouterr().err  # done: the manifest says so
-    assert main(["decompose", str(photos / "cat.png"), "-o", str(out), "--redo", *FAST]) == 1
-    assert "exists; pass --overwrite" in capsys.readouterr().err
-    assert (out / "cat-reflectance.png").read_bytes() == before
-    assert main(["decompose", str(photos / "cat.png"), "-o", str(out), "--overwrite", *FAST]) == 0
+# ----------------------------------------------------------------------------- start-up
 
 
-def test_directory_with_a_bad_file_processes_the_rest(photos, tmp_path, capsys):
-    src = tmp_path / "src"
-    src.mkdir()
-    for name in ("cat.png", "coffee.jpg"):
-        (src / name).write_bytes((photos / name).read_bytes())
-    (src / "broken.png").write_text("not an image")
-    out = tmp_path / "out"
-    assert main(["decompose", str(src), "-o", str(out), *FAST]) == 1
-    err = capsys.readouterr().err
-    assert "broken.png: is not an image" in err and "1 of 3 input(s) failed" in err
-    assert "Traceback" not in err
-    assert (out / "cat-reflectance.png").exists() and (out / "coffee-shading.png").exists()
-    assert not (out / "broken-reflectance.png").exists()
+def test_help_and_version_import_nothing_heavy():
+    """Every help page and --version, each in the same fresh process, loads no heavy module."""
+    pages = [["--help"], ["--version"], *([c.name, "--help"] for c in COMMANDS)]
+    code = f"""
+import sys
+from torchiid.cli import main
+for argv in {pages!r}:
+    try:
+        main(argv)
+    except SystemExit as stop:
+        assert stop.code == 0, (argv, stop.code)
+    loaded = [m for m in {HEAVY!r} if m in sys.modules]
+    assert not loaded, (argv, loaded)
+print("ok")
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip().endswith("ok")
 
 
-def test_retinex_method_and_mask(photos, tmp_path):
-    mask = np.zeros((72, 96), np.uint8)
-    mask[10:60, 10:80] = 255
-    cv2.imwrite(str(tmp_path / "mask.png"), mask)
-    out = tmp_path / "out"
-    assert (
-        main(
-            [
-                "decompose",
-                str(photos / "cat.png"),
-                "-o",
-                str(out),
-                "--method",
-                "retinex",
-                "--mask",
-                str(tmp_path / "mask.png"),
-                "--save-npy",
-                "--no-progress",
-            ]
-        )
-        == 0
-    )
-    assert json.loads((out / "cat-params.json").read_text())["method"] == "color_retinex"
-    out2 = tmp_path / "out2"
-    assert (
-        main(
-            [
-                "decompose",
-                str(photos / "cat.png"),
-                "-o",
-                str(out2),
-                "--mask",
-                str(tmp_path / "mask.png"),
-                "--save-npy",
-                *FAST,
-            ]
-        )
-        == 0
-    )
-    r = np.load(out2 / "cat-reflectance.npy")
-    assert np.all(r[:10] == 0) and np.all(r[60:] == 0) and r[30, 40].sum() > 0
+def test_import_torchiid_is_lazy_and_every_public_name_resolves():
+    code = """
+import sys
+import torchiid
+assert "torch" not in sys.modules
+from torchiid import Parameters, decompose, edit, TorchiidError
+import torchiid.model, torchiid.params
+assert decompose is torchiid.model.decompose and Parameters is torchiid.params.Parameters
+assert edit.merge and TorchiidError.__module__ == "torchiid.core.exceptions"
+missing = [n for n in torchiid.__all__ if getattr(torchiid, n, None) is None]
+assert not missing, missing
+assert set(torchiid.__all__) <= set(dir(torchiid))
+print("ok")
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    with pytest.raises(AttributeError, match="no attribute 'nothing_here'"):
+        torchiid.nothing_here  # noqa: B018
 
 
-@pytest.mark.parametrize(
-    ("args", "message"),
-    [
-        (["decompose", "missing.png", "-o", "{out}"], "missing.png: no such file"),
-        (["decompose", "{cat}", "-o", "{out}", "--preset", "fastest"], "unknown preset"),
-        (["decompose", "{cat}", "-o", "{out}", "--variant", "v9"], "unknown variant"),
-        (["decompose", "{cat}", "-o", "{out}", "--params", "{bad}"], "Invalid parameter: foo"),
-        (["decompose", "{cat}", "-o", "{out}", "--iterations", "0"], "--iterations must be"),
-        (["decompose", "{cat}", "-o", "{cat}"], "is not a directory"),
-    ],
-)
-def test_errors_are_one_line_without_traceback(photos, tmp_path, capsys, args, message):
-    (tmp_path / "bad.json").write_text('{"foo": 1}')
-    subs = {
-        "out": str(tmp_path / "out"),
-        "cat": str(photos / "cat.png"),
-        "bad": str(tmp_path / "bad.json"),
-    }
-    argv = [a.format(**subs) for a in args] + ["--no-progress"]
-    assert main(argv) != 0
-    err = capsys.readouterr().err
-    assert message in err and "Traceback" not in err
+def test_static_tools_see_every_public_name():
+    """``__all__`` is a literal and each name is imported under ``if TYPE_CHECKING:``."""
+    tree = ast.parse((ROOT / "torchiid" / "__init__.py").read_text())
+    listed = typed = None
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and node.targets[0].id == "__all__":
+            listed = set(ast.literal_eval(node.value))
+        if isinstance(node, ast.If) and getattr(node.test, "id", "") == "TYPE_CHECKING":
+            typed = {a.asname or a.name for i in node.body for a in i.names}
+    assert listed and listed == typed == set(torchiid.__all__)
 
 
-def test_features_command_writes_pictures_and_timings(photos, tmp_path, capsys):
-    out = tmp_path / "feat"
-    assert main(["features", str(photos / "cat.png"), "-o", str(out)]) == 0
-    printed = capsys.readouterr().out
-    assert "selective search" in printed and "patch features" in printed
-    for name in ("cat-gpca.png", "cat-proposals.png", "cat-patch-grid.png"):
-        img = cv2.imread(str(out / name), cv2.IMREAD_UNCHANGED)
-        assert img is not None and img.dtype == np.uint8 and img.ndim == 3
-    assert main(["features", str(photos / "cat.png"), "-o", str(out)]) == 2
-    assert "exists; pass --overwrite" in capsys.readouterr().err
+def test_choices_named_for_help_are_the_library_s():
+    from torchiid import edit
+    from torchiid.commands import edit as edit_command
+    from torchiid.commands import eval as eval_command
+    from torchiid.commands import video as video_command
+    from torchiid.eval.runner import METHODS
+    from torchiid.eval.scoring import DATASETS
+    from torchiid.video.flow import FLOW_METHODS
+    from torchiid.video.temporal import DEFAULT_TEMPORAL_WEIGHT
+
+    assert edit_command.COMBINE == edit.COMBINE
+    assert eval_command.DATASETS == DATASETS and eval_command.METHODS == METHODS
+    assert video_command.FLOW_METHODS == FLOW_METHODS
+    assert video_command.DEFAULT_TEMPORAL_WEIGHT == DEFAULT_TEMPORAL_WEIGHT
 
 
-def test_cuda_request_without_cuda_is_a_clear_error(photos, tmp_path, capsys):
-    import torch
-
-    if torch.cuda.is_available():
-        pytest.skip("CUDA is available here")
-    assert (
-        main(["decompose", str(photos / "cat.png"), "-o", str(tmp_path), "--device", "cuda", *FAST])
-        == 2
-    )
-    assert "no CUDA device is available" in capsys.readouterr().err
+# ----------------------------------------------------------------------------- grammar
 
 
-def _srgb_decode(a):
-    import torch
-
-    from torchiid.io import srgb_to_linear
-
-    x = torch.from_numpy(a.astype(np.float32) / 255)
-    return srgb_to_linear(x).numpy()
-
-
-def test_output_files_keep_the_convention_users_rely_on(tmp_path):
-    """Exact files multiply back to the image; the viewable ones do up to shading_white."""
-    import torch
-
-    from torchiid.io import load_image, read_exr
-
-    src = tmp_path / "coffee.png"
-    cv2.imwrite(
-        str(src), cv2.resize(data.coffee(), (180, 120), interpolation=cv2.INTER_AREA)[..., ::-1]
-    )
-    out = tmp_path / "out"
-    argv = ["decompose", str(src), "-o", str(out), "--save-confidence", "--iterations", "2"]
-    assert main([*argv, "--no-progress"]) == 0
-    img = load_image(src).image.permute(1, 2, 0).numpy()
-    info = json.loads((out / "coffee-info.json").read_text())
-    white = info["shading_white"]
-    assert len(info["solves"]) == 4 and isinstance(info["converged"], bool)
-    assert info["size"] == [180, 120] and 0 <= info["albedo_excess"] <= 0.001 + 1 / (180 * 120)
-    assert set(info["files"]) >= {"coffee-shading.exr", "coffee-reflectance-linear16.png"}
-    # exact pair: 16-bit linear reflectance (not clipped) and float OpenEXR shading
-    r16 = cv2.imread(str(out / "coffee-reflectance-linear16.png"), cv2.IMREAD_UNCHANGED)
-    r = r16[..., ::-1].astype(np.float64) / 65535
-    s, meta = read_exr(out / "coffee-shading.exr")
-    assert s.dtype == np.float32 and s.shape == (120, 180)
-    assert float(meta["shading_white"]) == pytest.approx(white)
-    assert (r16 == 65535).mean() <= 0.001 * 3  # only the quantile's pixels reach 1
-    # 16-bit R: relative error at most 1 / (2 * 65535 * R) per channel, plus the gray fit
-    rel = np.abs(r * s[..., None] - img) / np.maximum(img, 1e-6)
-    assert rel[r > 0.02].max() < 1e-3 and np.median(rel[r > 0.02]) < 1e-4
-    assert s.max() > 0 and np.isfinite(s).all()
-    # viewable pair: R8 * S8 * shading_white = I (median relative error < 3%, bright pixels)
-    r8 = cv2.imread(str(out / "coffee-reflectance.png"), cv2.IMREAD_UNCHANGED)[..., ::-1]
-    s8 = cv2.imread(str(out / "coffee-shading.png"), cv2.IMREAD_UNCHANGED)
-    recon = _srgb_decode(r8) * _srgb_decode(s8)[..., None] * white
-    lit = img > 0.05 * img.max()
-    assert np.median(np.abs(recon - img)[lit] / img[lit]) < 0.03
-    conf = cv2.imread(str(out / "coffee-confidence.png"), cv2.IMREAD_UNCHANGED)
-    assert conf.dtype == np.uint8 and conf.shape == (120, 180)
-    prev = cv2.imread(str(out / "coffee-preview.png"), cv2.IMREAD_UNCHANGED)
-    assert prev.shape == (120, 3 * 180 + 8, 3)
-    # eval --results scores the exact files when present
-    from torchiid.eval.results import load_layer
-
-    refl = load_layer(out, "coffee", "reflectance")
-    assert torch.allclose(refl[0].permute(1, 2, 0), torch.from_numpy(r).float(), atol=1e-6)
-    shad = load_layer(out, "coffee", "shading")
-    assert torch.allclose(shad[0, 0], torch.from_numpy(s), rtol=1e-6)
-
-
-def test_large_photos_get_a_downscaled_preview_and_full_size_layers(tmp_path):
-    src = tmp_path / "wide.jpg"
-    big = cv2.resize(data.coffee(), (1200, 800), interpolation=cv2.INTER_CUBIC)
-    cv2.imwrite(str(src), big[..., ::-1])
-    out = tmp_path / "out"
-    assert main(["decompose", str(src), "-o", str(out), "--iterations", "1", "--no-progress"]) == 0
-    info = json.loads((out / "wide-info.json").read_text())
-    assert info["working_size"] == [512, 341] and info["size"] == [1200, 800]
-    refl = cv2.imread(str(out / "wide-reflectance.png"), cv2.IMREAD_UNCHANGED)
-    assert refl.shape == (800, 1200, 3)
-    prev = cv2.imread(str(out / "wide-preview.png"), cv2.IMREAD_UNCHANGED)
-    assert prev.shape == (683, 3 * 1024 + 8, 3)
-
-
-def test_export_onnx_takes_output_like_the_other_subcommands(tmp_path, monkeypatch, capsys):
-    from pathlib import Path
-
-    import torchiid.features.onnx_backend as onnx_backend
-    from torchiid.cli import build_parser
-
-    parser = build_parser()
-    for flag in ("-o", "--output"):
-        assert parser.parse_args(["export-onnx", flag, "models"]).output == Path("models")
-    assert parser.parse_args(["export-onnx"]).output is None
+def test_help_lists_every_command_on_one_line(capsys):
     with pytest.raises(SystemExit):
-        parser.parse_args(["export-onnx", "--output-dir", "models"])
-    capsys.readouterr()
-    written = []
-    monkeypatch.setattr(onnx_backend, "export_to_dir", lambda d: written.append(d) or d / "m.onnx")
-    assert main(["export-onnx", "-o", str(tmp_path)]) == 0
-    assert written == [tmp_path]
-    assert f"wrote {tmp_path / 'm.onnx'}" in capsys.readouterr().out
+        main(["--help"])
+    text = capsys.readouterr().out
+    for command in COMMANDS:
+        pattern = rf"\s+{re.escape(command.name)}\s+{re.escape(command.help)}"
+        assert len([x for x in text.splitlines() if re.fullmatch(pattern, x)]) == 1, command
+    assert "exit status: 0 done; 1 failed" in text and "130 interrupted" in text
+
+
+# the smallest command line of each command that runs long
+MINIMAL = {
+    "decompose": ["x.png", "-o", "out"],
+    "decompose-video": ["frames", "-o", "out"],
+    "edit": ["merge", "x.png", "-o", "out"],
+    "eval": ["mit", "data"],
+    "features": ["x.png", "-o", "out"],
+    "app": [],
+}
+
+
+@pytest.mark.parametrize("command", LONG, ids=lambda c: c.name)
+def test_every_long_command_takes_the_run_options(command):
+    parser = build_parser()
+    base = [command.name, *MINIMAL[command.name]]
+    args = parser.parse_args([*base, "--no-progress", "--device", "cpu", "--threads", "3", "-q"])
+    assert (args.no_progress, args.device, args.threads, args.quiet) == (True, "cpu", 3, True)
+    assert parser.parse_args(base).threads is None
+    assert parser.parse_args([*base, "-v"]).verbose and parser.parse_args(["-v", *base]).verbose
+    assert parser.parse_args(["--quiet", *base]).quiet
+    assert not parser.parse_args(base).verbose
+
+
+@pytest.mark.parametrize("argv", [["--threads", "0"], ["--threads", "two"], ["--device", "tpu"]])
+def test_bad_run_options_are_usage_errors(argv, capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["decompose", "x.png", "-o", "out", *argv])
+    assert stop.value.code == 2
+    assert "torchiid decompose: error: argument" in capsys.readouterr().err
+
+
+def test_quiet_and_verbose_exclude_each_other(capsys):
+    base = ["decompose", "x.png", "-o", "out"]
+    for argv in (["-q", "-v", *base], [*base, "-q", "-v"], ["-q", *base, "-v"]):
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        assert stop.value.code == 2
+        assert re.search(r"not allowed with|exclude each other", capsys.readouterr().err)
+
+
+# ----------------------------------------------------------------------------- exit statuses
+
+
+def _argv(command: str, photo: Path, out: Path) -> list[str]:
+    return {
+        "decompose": ["decompose", str(photo / "cat.png"), "-o", str(out)],
+        "decompose-video": ["decompose-video", str(photo / "frames"), "-o", str(out)],
+        "edit": ["edit", "merge", str(photo / "cat.png"), "-o", str(out)],
+        "eval": ["eval", "mit", str(photo), "-o", str(out)],
+        "features": ["features", str(photo / "cat.png"), "-o", str(out)],
+        "app": ["app", "--port", "1"],
+    }[command]
+
+
+def _fail_early(monkeypatch, command: str, exc: BaseException) -> None:
+    """Make ``command`` raise ``exc`` as its work starts."""
+
+    def fail(*args, **kwargs):
+        raise exc
+
+    if command == "features":
+        import torchiid.core.device
+
+        monkeypatch.setattr(torchiid.core.device, "resolve_device", fail)
+    elif command == "app":
+        monkeypatch.setattr("torchiid.commands.app.gradio_installed", fail)
+    else:
+        module = next(c.module for c in COMMANDS if c.name == command)
+        monkeypatch.setattr(f"torchiid.commands.{module}.params_from_args", fail)
+
+
+@pytest.mark.parametrize("command", [c.name for c in LONG])
+@pytest.mark.parametrize(
+    ("exc", "status", "line"),
+    [
+        (KeyboardInterrupt(), 130, "torchiid: interrupted"),
+        (TypeError("a bug"), 1, "torchiid: error: internal error (TypeError: a bug); rerun"),
+        (TorchiidError("a bad setting"), 2, "torchiid: error: a bad setting"),
+    ],
+    ids=["interrupted", "internal-error", "set-up-error"],
+)
+def test_exit_statuses_are_the_same_for_every_command(
+    photo, tmp_path, monkeypatch, capsys, command, exc, status, line
+):
+    _fail_early(monkeypatch, command, exc)
+    assert main([*_argv(command, photo, tmp_path / "out"), "--no-progress"]) == status
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(line)
+    assert "Traceback" not in err[0] and not (tmp_path / "out").exists()
+
+
+def test_usage_errors_exit_with_2_for_every_command(photo, tmp_path, capsys):
+    for command in LONG:
+        with pytest.raises(SystemExit) as stop:
+            main([*_argv(command.name, photo, tmp_path / "out"), "--no-such-option"])
+        assert stop.value.code == 2, command.name
+        assert "unrecognized arguments: --no-such-option" in capsys.readouterr().err
+
+
+def test_verbose_adds_the_traceback_of_an_internal_error(photo, tmp_path):
+    code = """
+import sys
+import torchiid.commands.decompose as command
+from torchiid.cli import main
+def bug(args):
+    raise TypeError("a bug")
+command.params_from_args = bug
+sys.exit(main(sys.argv[1:]))
+"""
+    argv = [*_argv("decompose", photo, tmp_path / "out"), "--no-progress"]
+    quiet = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True)
+    loud = subprocess.run([sys.executable, "-c", code, *argv, "-v"], capture_output=True, text=True)
+    assert quiet.returncode == loud.returncode == 1
+    assert "Traceback" not in quiet.stderr and "internal error (TypeError: a bug)" in quiet.stderr
+    assert "Traceback" in loud.stderr and "in bug\nTypeError: a bug" in loud.stderr
+
+
+def test_threads_are_set_for_the_run_and_restored(photo, tmp_path, monkeypatch):
+    import os
+
+    import torch
+
+    before, seen = torch.get_num_threads(), {}
+
+    def record(args):
+        seen["torch"], seen["omp"] = torch.get_num_threads(), os.environ.get("OMP_NUM_THREADS")
+        raise TorchiidError("stop here")
+
+    monkeypatch.setattr("torchiid.commands.edit.params_from_args", record)
+    omp = os.environ.get("OMP_NUM_THREADS")
+    argv = [*_argv("edit", photo, tmp_path / "out"), "--threads", "3"]
+    assert main(argv) == 2
+    assert seen == {"torch": 3, "omp": "3"}
+    assert torch.get_num_threads() == before and os.environ.get("OMP_NUM_THREADS") == omp
+
+
+# ----------------------------------------------------------------------------- verbosity
+
+
+def test_the_default_preset_s_caps_are_no_news(photo, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["decompose", str(photo / "cat.png"), "-o", str(out), *FAST]) == 0
+    err = capsys.readouterr().err
+    assert "tolerance" not in err and err.count("\n") == 1  # the summary line alone
+    info = json.loads((out / "cat-info.json").read_text())
+    assert info["converged"] is False and len(info["solves"]) == 2  # recorded there
+    assert main(["decompose", str(photo / "cat.png"), "-o", str(tmp_path / "v"), *FAST, "-v"]) == 0
+    err = capsys.readouterr().err
+    assert "cat.png: 2 of 2 solver runs stopped before their tolerance (the preset's caps" in err
+
+
+def test_quiet_prints_only_errors(photo, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["decompose", str(photo / "cat.png"), "-o", str(out), *FAST, "-q"]) == 0
+    assert capsys.readouterr().err == "" and (out / "cat-reflectance.png").is_file()
+    argv = ["-q", "decompose", str(photo / "cat.png"), "missing.png", "-o", str(out)]
+    assert main([*argv, "--iterations", "1"]) == 1  # -q: no progress bar either
+    assert capsys.readouterr().err.splitlines() == [
+        "torchiid: error: missing.png: no such file",
+        "torchiid: 1 of 2 input(s) failed",
+    ]
+
+
+def test_a_capped_solve_of_the_converged_preset_is_a_note(photo, tmp_path, monkeypatch, capsys):
+    import dataclasses
+
+    import torchiid.model as model
+
+    real = model.decompose
+
+    def capped(*args, **kwargs):  # the solves as if the last had hit its safety cap
+        result = real(*args, **kwargs)
+        last = dataclasses.replace(result.solves[-1], converged=False, iterations=9, cap=9)
+        return dataclasses.replace(result, solves=(*result.solves[:-1], last))
+
+    monkeypatch.setattr(model, "decompose", capped)
+    argv = ["decompose", str(photo / "cat.png"), "--preset", "converged", *FAST]
+    assert main([*argv, "-o", str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err
+    assert "torchiid: note: " in err and "1 of 2 solver runs stopped before their tolerance" in err
+    assert "safety caps: raise cg_max_iter / bregman_iter" in err and "cat-info.json" in err
+    assert main([*argv, "-o", str(tmp_path / "b"), "-q"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_commands_are_registered_in_one_table():
+    names = [c.name for c in COMMANDS]
+    assert len(set(names)) == len(names)
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    assert list(sub.choices) == names
+    for command in COMMANDS:
+        module = importlib.import_module(f"torchiid.commands.{command.module}")
+        assert callable(module.add_arguments) and callable(module.run)
 
 
 def _raise_from(cause):
@@ -296,29 +371,27 @@ def test_ctrl_c_inside_a_compiled_kernel_is_reported_as_an_interruption(
     assert "internal error (SystemError" in capsys.readouterr().err
 
 
-def test_retinex_output_follows_the_readme_convention(photos, tmp_path):
-    """--method retinex: R is an albedo in [0, 1] (99.9th percentile of max_c R_c is 1),
-    R * S == I, shading_white is the shading's 99th percentile, like the method's output."""
+# ----------------------------------------------------------------------------- memory limit
+
+
+def test_the_memory_limit_variable_is_the_one_the_library_reads():
+    from torchiid.commands.common import MEMORY_LIMIT_VARIABLE
+    from torchiid.core import memory
+
+    assert MEMORY_LIMIT_VARIABLE == memory.MEMORY_LIMIT_VARIABLE
+
+
+def test_decompose_refuses_a_photo_over_the_memory_limit_and_restores_the_variable(
+    photo, tmp_path, capsys, monkeypatch
+):
+    monkeypatch.delenv("TORCHIID_MEMORY_LIMIT", raising=False)
     out = tmp_path / "out"
-    argv = ["decompose", str(photos / "cat.png"), "-o", str(out), "--method", "retinex"]
-    assert main([*argv, "--save-npy", "--no-progress"]) == 0
-    from torchiid.io import load_image
-
-    img = load_image(photos / "cat.png").image.permute(1, 2, 0).numpy()
-    r, s = np.load(out / "cat-reflectance.npy"), np.load(out / "cat-shading.npy")
-    info = json.loads((out / "cat-info.json").read_text())
-    assert info["method"] == "retinex" and r.max() <= 1
-    assert (s >= img.max(axis=2) - 1e-6).all()  # R <= 1, so S >= max_c I_c
-    assert np.quantile(r.max(axis=2), 0.999, method="higher") == pytest.approx(1, abs=2e-3)
-    assert np.allclose(r * s[..., None], img, atol=1e-5)
-    assert info["shading_white"] == pytest.approx(np.quantile(s, 0.99), rel=1e-2)
-    s8 = cv2.imread(str(out / "cat-shading.png"), cv2.IMREAD_UNCHANGED)
-    assert np.quantile(s8, 0.99) >= 254  # shading / shading_white: the 99th percentile is white
-
-
-def test_error_lines_go_above_the_progress_bar(photos, tmp_path, capsys):
-    argv = ["decompose", "missing.png", str(photos / "cat.png"), "-o", str(tmp_path / "o")]
-    assert main([*argv, "--iterations", "1"]) == 1  # progress bar on
+    status = main(["decompose", str(photo / "cat.png"), "-o", str(out), "--memory-limit", "0.01"])
     err = capsys.readouterr().err
-    line = next(x for x in err.split("\n") if "missing.png" in x)
-    assert line.split("\r")[-1] == "torchiid: error: missing.png: no such file"
+    assert status == 1
+    assert "over the memory limit of 0.01 GB" in err and "--memory-limit" in err
+    assert not out.exists()  # refused before any work: nothing written
+    assert "TORCHIID_MEMORY_LIMIT" not in os.environ
+    with pytest.raises(SystemExit) as stop:
+        main(["decompose", str(photo / "cat.png"), "-o", str(out), "--memory-limit", "0"])
+    assert stop.value.code == 2

@@ -13,6 +13,15 @@ from torchiid.synthetic import mondrian
 FAST = Parameters().replace(iterations=2)
 
 
+def _spread(x):
+    """Relative spread (std / mean) of a ratio: 0 when it is one constant scale."""
+    return float(x.std() / x.mean())
+
+
+def _corr(a, b):
+    return float(torch.corrcoef(torch.stack([a.flatten(), b.flatten()]))[0, 1])
+
+
 def _noisy_mondrian(seed, size=96):
     s = mondrian(size, size, seed=seed)
     g = torch.Generator().manual_seed(seed)
@@ -25,8 +34,15 @@ def test_layers_multiply_back_to_the_image():
     out = decompose(s.image, FAST, return_iterations=True)
     assert isinstance(out, Decomposition)
     assert out.reflectance.shape == (2, 3, 64, 80) and out.shading.shape == (2, 1, 64, 80)
-    assert torch.allclose(out.reflectance * out.shading, s.image, atol=1e-6)
-    assert torch.allclose(out.rho * out.sigma, s.image, atol=1e-6)
+    for i in range(2):
+        # R and Stage 1's rho are the true reflectance up to a scale (measured: R / R_true
+        # spreads 6-7%, I / R_true 24-33%); Stage 1's sigma follows the true shading
+        assert _spread(out.reflectance[i] / s.reflectance[i]) < 0.15
+        assert _spread(out.rho[i] / s.reflectance[i]) < 0.15
+        assert _spread(out.reflectance[i] / s.reflectance[i]) < 0.4 * _spread(
+            s.image[i] / s.reflectance[i]
+        )
+        assert _corr(out.sigma[i].log(), s.shading[i].log()) > 0.97
     assert len(out.iterations) == 2
     for layers in out.iterations:
         assert layers.sigma.shape == (2, 1, 64, 80) and layers.reflectance.shape == (2, 3, 64, 80)
@@ -104,8 +120,8 @@ def test_mask_restricts_every_prior():
     assert float(out.reflectance[~mask.expand(1, 3, -1, -1)].abs().max()) == 0
     assert float(out.shading[~mask].abs().max()) == 0
     inside = mask.expand(1, 3, -1, -1)
-    prod = out.reflectance * out.shading
-    assert torch.allclose(prod[inside], s.image[inside], atol=1e-6)
+    # inside, R is the true reflectance up to a scale (measured spread 7%; I / R_true 35%)
+    assert _spread((out.reflectance / s.reflectance)[inside]) < 0.15
     # what lies outside the mask cannot change the result inside
     other = s.image.clone()
     other[~mask.expand(1, 3, -1, -1)] = torch.rand(
@@ -119,8 +135,7 @@ def test_working_resolution_brings_layers_back_to_full_size():
     s = mondrian(96, 128, seed=4)
     p = FAST.replace(max_side=80)
     out = decompose(s.image, p)
-    assert out.reflectance.shape == (1, 3, 96, 128)
-    assert torch.allclose(out.reflectance * out.shading, s.image, atol=1e-6)
+    assert out.reflectance.shape == (1, 3, 96, 128) and out.shading.shape == (1, 1, 96, 128)
     # edge-aware: the shading stays smooth across reflectance edges (no reflectance leaks in)
     corr = torch.corrcoef(torch.stack([out.shading.log().flatten(), s.shading.log().flatten()]))
     assert float(corr[0, 1]) > 0.9

@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import time
 
 import cv2
 import numpy as np
@@ -14,15 +13,13 @@ import pytest
 from torchiid.cli import main
 from torchiid.collection import (
     Manifest,
-    OutputLock,
     RunSettings,
     params_hash,
     plan,
     run_collection,
 )
-from torchiid.collection.job import ImageJob, ImageResult
+from torchiid.collection.job import ImageResult
 from torchiid.collection.manifest import read_records, record_of
-from torchiid.core.exceptions import ModelError
 from torchiid.io.inputs import list_inputs, unique_keys
 from torchiid.io.layers import layer_file_names
 from torchiid.params import Parameters
@@ -142,56 +139,6 @@ def test_other_parameters_are_not_skipped(library, tmp_path, capsys):
     assert len({r["params"] for r in _records(out)}) == 2
 
 
-def test_complete_files_without_a_record_are_recognised(library, tmp_path, capsys):
-    out = tmp_path / "out"
-    cover = library / "cover.png"
-    assert _run(cover, "-o", out) == 0
-    before = (out / "cover-shading.exr").stat().st_mtime_ns
-    (out / "manifest.jsonl").unlink()  # as if the run had stopped before recording it
-    assert _run(cover, "-o", out, "--no-progress") == 0
-    assert _last(out)["cover"]["status"] == "done"
-    assert (out / "cover-shading.exr").stat().st_mtime_ns == before  # not recomputed
-    with open(out / "manifest.jsonl", "a") as f:
-        f.write('{"key": "cov')  # a torn last line of a killed run
-    assert len(Manifest(out / "manifest.jsonl")) == 1
-    assert _run(cover, "-o", out) == 0
-    assert "0 done, 1 skipped" in capsys.readouterr().err
-    other = library / "2019" / "IMG_0001.png"
-    assert _run(cover, other, "-o", out) == 0  # its record goes after the torn line
-    assert "1 done, 1 skipped" in capsys.readouterr().err
-    manifest = Manifest(out / "manifest.jsonl")
-    assert sorted(manifest.records) == ["IMG_0001", "cover"] and manifest.bad_lines == 1
-
-
-def test_a_set_up_error_stops_the_run_and_is_never_a_bad_input(
-    library, tmp_path, monkeypatch, capsys
-):
-    from torchiid.collection import job
-
-    def no_model(settings):
-        raise ModelError("ONNX model not found at /nowhere/m.onnx; run `torchiid export-onnx`")
-
-    monkeypatch.setattr(job, "_STATES", {})
-    monkeypatch.setattr(job, "_new_state", no_model)
-    out = tmp_path / "out"
-    out.mkdir()  # an existing folder: a failure would be recorded at once
-    cover = library / "cover.png"
-    assert _run(cover, "-o", out) == 2
-    assert capsys.readouterr().err.splitlines() == [
-        "torchiid: error: cannot set up the run: ONNX model not found at /nowhere/m.onnx; "
-        "run `torchiid export-onnx`"
-    ]
-    assert not (out / "manifest.jsonl").exists()
-    # a Dask task: an "error" result (Dask retries it), never a bad input
-    settings = RunSettings(out=out, params=Parameters(), method="retinex")
-    result = job.process_image(ImageJob(0, str(cover), "cover"), settings)
-    assert result.failure == "error" and result.status == "failed"
-    assert result.message.startswith(f"{cover}: not processed: cannot set up the run: ONNX")
-    monkeypatch.undo()
-    assert _run(cover, "-o", out) == 0  # the model is back: it runs
-    assert "1 done, 0 skipped, 0 failed" in capsys.readouterr().err
-
-
 @pytest.mark.parametrize(
     "failure, skipped", [("input", True), ("error", False), ("worker", False), ("output", False)]
 )
@@ -209,22 +156,6 @@ def test_only_bad_inputs_are_skipped_as_failed_before(library, tmp_path, failure
     assert (len(decided.failed_before), len(decided.todo)) == ((1, 0) if skipped else (0, 1))
     decided = plan(items, Manifest(out / "manifest.jsonl"), phash, out=out, retry_failed=True)
     assert len(decided.todo) == 1
-
-
-def test_a_second_run_on_the_same_folder_is_refused(library, tmp_path, capsys):
-    out = tmp_path / "out"
-    with OutputLock(out) as lock:
-        assert lock.held and (out / ".torchiid.lock").is_file()
-        assert _run(library / "cover.png", "-o", out) == 2
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1
-        assert "another torchiid run is writing into this folder (pid" in err[0]
-        assert f"pid {os.getpid()} on" in err[0]
-    assert not (out / ".torchiid.lock").exists() and not out.exists()  # created, removed
-    out.mkdir()
-    (out / ".torchiid.lock").write_text("left by a killed run: nobody holds it")
-    assert _run(library / "cover.png", "-o", out) == 0
-    assert not (out / ".torchiid.lock").exists()
 
 
 def test_list_file_masks_and_a_failure_into_an_existing_folder(library, tmp_path, capsys):
@@ -267,103 +198,58 @@ def test_list_file_masks_and_a_failure_into_an_existing_folder(library, tmp_path
     assert "cover-reflectance-linear16.png exists; pass --overwrite" in capsys.readouterr().err
 
 
-def test_the_skip_pass_is_linear_and_hashes_only_changed_files(tmp_path):
-    n = 3000
+class _CountingOs:
+    """``os`` for :mod:`torchiid.collection.manifest`, counting the calls that touch the disk."""
+
+    def __init__(self):
+        self.calls = {"stat": 0, "listdir": 0}
+
+    def __getattr__(self, name):
+        real = getattr(os, name)
+        if name not in self.calls:
+            return real
+
+        def counted(*args, **kwargs):
+            self.calls[name] += 1
+            return real(*args, **kwargs)
+
+        return counted
+
+
+def test_the_skip_pass_is_linear_and_hashes_only_changed_files(tmp_path, monkeypatch):
+    import torchiid.collection.manifest as manifest
+
+    n, folders = 120, ("", "a", "a/b")  # a third of the images in each output folder
     src, out = tmp_path / "src", tmp_path / "out"
-    src.mkdir()
-    out.mkdir()
     settings = RunSettings(out=out, params=Parameters(), method="retinex")
     phash = params_hash(settings)
     names = layer_file_names("x")
+    keys = []
+    for k, folder in enumerate(folders):
+        (src / folder).mkdir(parents=True, exist_ok=True)
+        (out / folder).mkdir(parents=True, exist_ok=True)
+        keys += [f"{folder}/{i:05d}".lstrip("/") for i in range(k, n, len(folders))]
     with open(out / "manifest.jsonl", "w") as f:
-        for i in range(n):
-            path = src / f"{i:05d}.png"
+        for i, key in enumerate(keys):
+            path = src / f"{key}.png"
             path.write_bytes(i.to_bytes(4, "big"))
             st = path.stat()
-            files = [n.replace("x-", f"{i:05d}-", 1) for n in names]
+            folder, _, stem = key.rpartition("/")
+            files = [f"{folder}/{n}".lstrip("/").replace("x-", f"{stem}-", 1) for n in names]
             for name in files:
                 (out / name).write_bytes(b"")
-            result = ImageResult(i, f"{i:05d}", str(path), "done", files=files)
+            result = ImageResult(i, key, str(path), "done", files=files)
             result.sha256, result.size, result.mtime_ns = _sha(path), st.st_size, st.st_mtime_ns
             f.write(json.dumps(record_of(result, phash)) + "\n")
-    items = unique_keys(list_inputs([src]))
-    t0 = time.perf_counter()
+    items = unique_keys(list_inputs([src], recursive=True))
+    counting = _CountingOs()
+    monkeypatch.setattr(manifest, "os", counting)
     decided = plan(items, Manifest(out / "manifest.jsonl"), phash, out=out)
-    seconds = time.perf_counter() - t0
     assert len(decided.done_before) == n and not decided.todo and decided.hashed == 0
-    assert seconds < 3, seconds
-    (out / "00007-preview.png").unlink()  # a missing output: that image runs again
-    os.utime(src / "00009.png", ns=(0, 0))
+    # one stat per input and one listing per output folder, nothing per output file
+    assert counting.calls == {"stat": n, "listdir": len(folders)}
+    (out / "00006-preview.png").unlink()  # a missing output: that image runs again
+    os.utime(src / "a" / "00007.png", ns=(0, 0))  # touched, same bytes: hashed, skipped
     decided = plan(items, Manifest(out / "manifest.jsonl"), phash, out=out)
-    assert [j.key for j in decided.todo] == ["00007"] and decided.hashed == 1
-
-
-def test_no_inputs_and_conflicting_options_are_usage_errors(tmp_path, capsys):
-    assert main(["decompose", "-o", str(tmp_path / "o")]) == 2
-    assert (
-        "no inputs: name image files, folders or globs, or --list FILE" in capsys.readouterr().err
-    )
-    cover = photo(tmp_path / "c.png")
-    argv = ["decompose", str(cover), "-o", str(tmp_path / "o")]
-    assert main([*argv, "--workers", "2", "--dask-scheduler", "tcp://x:1"]) == 2
-    assert "--workers and --dask-scheduler exclude each other" in capsys.readouterr().err
-    assert main([*argv, "--workers", "0"]) == 2
-    assert "--workers must be >= 1" in capsys.readouterr().err
-    assert not (tmp_path / "o").exists()
-
-
-@pytest.mark.parametrize("address", ["tcp://127.0.0.1:9"])
-def test_an_unreachable_scheduler_is_a_set_up_error(tmp_path, capsys, monkeypatch, address):
-    monkeypatch.setattr("torchiid.collection.dask_runner.CONNECT_TIMEOUT", 1.0)
-    cover = photo(tmp_path / "c.png")
-    argv = ["decompose", str(cover), "-o", str(tmp_path / "o"), "--dask-scheduler", address]
-    assert main([*argv, *FAST]) == 2
-    err = capsys.readouterr().err
-    assert f"cannot reach the Dask scheduler at {address}" in err
-    assert not (tmp_path / "o").exists()
-
-
-def _interrupted_in_a_kernel(*args, **kwargs):
-    """What Ctrl-C inside a numba kernel raises: SystemError caused by the KeyboardInterrupt."""
-    try:
-        raise KeyboardInterrupt
-    except KeyboardInterrupt as exc:
-        raise SystemError("CPUDispatcher(...) returned a result with an exception set") from exc
-
-
-def test_ctrl_c_inside_a_compiled_kernel_is_an_interruption_not_a_failed_image(tmp_path):
-    from torchiid.collection.job import process_image
-
-    path = photo(tmp_path / "a.png")
-    settings = RunSettings(out=tmp_path / "out", params=Parameters(), method="semantic")
-    job = ImageJob(0, str(path), "a")
-    with pytest.raises(KeyboardInterrupt):
-        process_image(job, settings, decompose_fn=_interrupted_in_a_kernel)
-    out = tmp_path / "out"
-    assert not out.exists() or not any(out.iterdir())
-
-
-def _plain_bug(*args, **kwargs):
-    raise SystemError("a real internal error")
-
-
-def test_a_system_error_without_an_interrupt_still_fails_the_image(tmp_path):
-    from torchiid.collection.job import process_image
-
-    path = photo(tmp_path / "a.png")
-    settings = RunSettings(out=tmp_path / "out", params=Parameters(), method="semantic")
-    result = process_image(ImageJob(0, str(path), "a"), settings, decompose_fn=_plain_bug)
-    assert result.status == "failed" and result.failure == "error"
-
-
-def test_the_parameters_hash_does_not_depend_on_the_version(monkeypatch, tmp_path):
-    # a new version that computes the same files keeps a collection's records
-    import torchiid
-    from torchiid.collection.job import RunSettings, params_hash
-
-    settings = RunSettings(out=tmp_path, params=Parameters.preset("converged"))
-    before = params_hash(settings)
-    monkeypatch.setattr(torchiid, "__version__", "99.0.0")
-    assert json.loads(settings.params.to_json())["torchiid_version"] == "99.0.0"
-    assert params_hash(settings) == before
-    assert params_hash(RunSettings(out=tmp_path, params=Parameters())) != before
+    assert [j.key for j in decided.todo] == ["00006"] and decided.hashed == 1
+    assert [r["key"] for r in decided.refreshed] == ["a/00007"]

@@ -6,12 +6,14 @@ import numpy as np
 import pytest
 import torch
 
+from torchiid.core.exceptions import ParameterError
 from torchiid.eval import (
     DatasetError,
     DenseFolderDataset,
     IIWDataset,
     MITDataset,
     SAWDataset,
+    open_dataset,
 )
 
 MIT_REAL = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "mit-berkeley"
@@ -159,6 +161,26 @@ def test_reader_rejects_alpha_and_size_mismatch(tmp_path):
     _write16(tmp_path / "obj" / "diffuse.png", np.zeros((6, 8, 3)))
     with pytest.raises(DatasetError, match="differ in size"):
         MITDataset(tmp_path)[0]
+
+
+def test_open_dataset_by_name_with_ids(tmp_path):
+    for name in ("im0", "im1", "im2"):
+        for suffix in ("", "-reflectance", "-shading"):
+            _write16(tmp_path / f"{name}{suffix}.png", np.full((4, 5), 30000))
+    assert open_dataset("dense", tmp_path).ids == ("im0", "im1", "im2")
+    assert open_dataset("dense", tmp_path, ["im2", "im0"]).ids == ("im2", "im0")
+    split = tmp_path / "split.txt"
+    split.write_text("im1\n")
+    assert open_dataset("dense", tmp_path, split).ids == ("im1",)
+    with pytest.raises(DatasetError, match=r"1 of the given ids are not in .*\['im9'\]"):
+        open_dataset("dense", tmp_path, ["im9"])
+    split.write_text("im8\nim9\n")
+    with pytest.raises(DatasetError, match="2 ids of .*split.txt are not in"):
+        open_dataset("dense", tmp_path, split)
+    with pytest.raises(ParameterError, match="unknown dataset 'kitti'"):
+        open_dataset("kitti", tmp_path)
+    _fake_mit(tmp_path / "mit")
+    assert isinstance(open_dataset("mit", tmp_path / "mit", input="original"), MITDataset)
 
 
 @pytest.mark.skipif(not MIT_REAL.is_dir(), reason="shared MIT-Berkeley data not present")

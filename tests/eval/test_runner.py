@@ -9,21 +9,17 @@ import pytest
 import torch
 
 from torchiid.baselines import reflectance_is_image, shading_is_image
-from torchiid.core.exceptions import ParameterError, ShapeError, TorchiidError
+from torchiid.core.exceptions import ParameterError, TorchiidError
 from torchiid.eval import (
     METRICS,
-    DatasetError,
     DenseFolderDataset,
+    EvalOptions,
     EvalResult,
     EvalRunner,
     dssim,
-    load_layer,
     local_mse,
     method_parameters,
-    open_dataset,
     run_evaluation,
-    run_method,
-    score_sample,
     si_mse,
 )
 from torchiid.io import save_image
@@ -105,17 +101,18 @@ def test_runner_resumes_and_batches(tmp_path, monkeypatch):
         return reflectance_is_image(image)
 
     monkeypatch.setattr(model, "decompose", fake)
-    first = EvalRunner("dense", root, output=out, limit=1, device="cpu").run()
+    first = EvalRunner("dense", root, EvalOptions(output=out, limit=1, device="cpu")).run()
     assert list(first.rows) == ["im0"] and calls == [(1, 3, 24, 32)]
     assert first.summary["parameters"] == json.loads(json.dumps(method_parameters("semantic")))
-    again = EvalRunner("dense", root, output=out, batch_size=2, device="cpu").run()
+    again = EvalRunner("dense", root, EvalOptions(output=out, batch_size=2, device="cpu")).run()
     assert list(again.rows) == ["im0", "im1", "im2"] and again.rows["im0"] == first.rows["im0"]
     assert sorted(calls[1:]) == [(1, 3, 20, 28), (1, 3, 24, 32)]  # im0 was not run again
     with pytest.raises(TorchiidError, match="exists"):
-        EvalRunner("dense", root, output=out, resume=False, device="cpu").run()
-    fresh = EvalRunner(
-        "dense", root, output=out, overwrite=True, batch_size=2, ids=["im1", "im0"], device="cpu"
-    ).run()
+        EvalRunner("dense", root, EvalOptions(output=out, resume=False, device="cpu")).run()
+    options = EvalOptions(
+        output=out, overwrite=True, batch_size=2, ids=["im1", "im0"], device="cpu"
+    )
+    fresh = EvalRunner("dense", root, options).run()
     assert fresh.ids == ("im1", "im0") and calls[-1] == (2, 3, 24, 32)
 
 
@@ -141,70 +138,28 @@ def test_runner_reports_failures(tmp_path):
 
 
 def test_runner_checks_its_arguments(tmp_path):
-    with pytest.raises(ParameterError, match="batch_size"):
-        EvalRunner("dense", tmp_path, batch_size=0)
-    with pytest.raises(ParameterError, match="limit"):
-        EvalRunner("dense", tmp_path, limit=0)
-    with pytest.raises(ParameterError, match="delta"):
-        EvalRunner("iiw", tmp_path, delta=float("nan"))
-    with pytest.raises(ParameterError, match="method"):
-        EvalRunner("dense", tmp_path, method="magic")
     with pytest.raises(ParameterError, match="dataset"):
         EvalRunner("kitti", tmp_path)
     with pytest.raises(TorchiidError, match="does not exist"):
-        EvalRunner("dense", tmp_path, results_dir=tmp_path / "nothing")
-    runner = EvalRunner("mit", tmp_path, method="r=i", device="cpu")
+        EvalRunner("dense", tmp_path, EvalOptions(results_dir=tmp_path / "nothing"))
+    (tmp_path / "file").write_text("")
+    with pytest.raises(TorchiidError, match="is a file, not a dense dataset directory"):
+        EvalRunner("dense", tmp_path / "file")
+    runner = EvalRunner("mit", tmp_path, EvalOptions(method="r=i", device="cpu"))
     assert runner.output.name == "eval-mit-r=i" and runner.device == torch.device("cpu")
+    assert runner.method == "r=i" and runner.batch_size == 1 and runner.delta == 0.10
+    scoring = EvalRunner("mit", tmp_path, EvalOptions(results_dir=tmp_path))
+    assert scoring.method == "results" and scoring.output.name == "eval-mit-results"
+    with pytest.raises(AttributeError, match="no attribute 'magic'"):
+        runner.magic  # noqa: B018
 
 
-def test_open_dataset_ids(tmp_path):
-    root = _tiny_dense(tmp_path / "dense")
-    assert open_dataset("dense", root, ["im2", "im0"]).ids == ("im2", "im0")
-    split = tmp_path / "split.txt"
-    split.write_text("im1\n")
-    assert open_dataset("dense", root, split).ids == ("im1",)
-    with pytest.raises(DatasetError, match=r"1 of the given ids are not in .*\['im9'\]"):
-        open_dataset("dense", root, ["im9"])
-    split.write_text("im8\nim9\n")
-    with pytest.raises(DatasetError, match="2 ids of .*split.txt are not in"):
-        open_dataset("dense", root, split)
-
-
-def test_run_method_and_parameters():
-    image = torch.rand(2, 3, 8, 8) + 0.1
-    out = run_method("r=i", image)
-    assert torch.equal(out.reflectance, image) and torch.equal(out.shading, torch.ones(2, 1, 8, 8))
-    out = run_method("retinex", image)
-    assert torch.allclose(out.reflectance * out.shading, image, rtol=1e-5)
-    with pytest.raises(ParameterError):
-        run_method("magic", image)
-    assert method_parameters("retinex")["threshold_gray"] == 0.075
-    assert "mask" not in method_parameters("retinex") and method_parameters("s=i") == {}
-
-
-def test_score_sample_checks_sizes(tmp_path):
-    s = DenseFolderDataset(_tiny_dense(tmp_path / "dense"))[0]
-    with pytest.raises(ShapeError, match="shading"):
-        score_sample("dense", s, s.reflectance[None], torch.ones(1, 1, 5, 5))
-    with pytest.raises(ParameterError):
-        score_sample("kitti", s, s.reflectance[None], s.shading[None])
-
-
-def test_load_layer_prefers_the_exact_files(tmp_path):
-    r = torch.rand(3, 6, 7) * 0.8 + 0.1
-    s = torch.rand(1, 6, 7) * 0.8 + 0.1
-    with pytest.raises(TorchiidError, match="none of a-shading.npy, a-shading.exr, a-shading.png"):
-        load_layer(tmp_path, "a", "shading")
-    save_image(tmp_path / "a-reflectance.png", torch.zeros(3, 6, 7), "srgb8")
-    save_image(tmp_path / "a-shading.png", torch.zeros(1, 6, 7), "srgb8")
-    assert float(load_layer(tmp_path, "a", "reflectance").abs().max()) == 0.0
-    save_image(tmp_path / "a-reflectance-linear16.png", r, "linear16")
-    save_image(tmp_path / "a-shading.exr", s, "exr")
-    got = load_layer(tmp_path, "a", "reflectance")
-    assert got.shape == (1, 3, 6, 7) and torch.allclose(got[0], r, atol=1 / 65535)
-    got = load_layer(tmp_path, "a", "shading")
-    assert got.shape == (1, 1, 6, 7) and torch.allclose(got[0], s, rtol=1e-6)
-    save_image(tmp_path / "a-shading.npy", 2 * s, "npy")
-    assert torch.allclose(load_layer(str(tmp_path), "a", "shading")[0], 2 * s, rtol=1e-6)
-    with pytest.raises(ParameterError):
-        load_layer(tmp_path, "a", "albedo")
+def test_the_keyword_form_is_deprecated_and_still_works(tmp_path):
+    with pytest.warns(DeprecationWarning, match=r"EvalOptions\(<option>=\.\.\.\)"):
+        old = EvalRunner("dense", tmp_path, method="s=i", output=tmp_path / "a", device="cpu")
+    assert old.options == EvalOptions(method="s=i", output=tmp_path / "a", device="cpu")
+    assert (old.method, old.output, old.device) == ("s=i", tmp_path / "a", torch.device("cpu"))
+    with pytest.warns(DeprecationWarning), pytest.raises(TypeError, match="magic"):
+        EvalRunner("dense", tmp_path, magic=1)
+    with pytest.warns(DeprecationWarning), pytest.raises(ParameterError, match="batch_size"):
+        EvalRunner("dense", tmp_path, batch_size=0)

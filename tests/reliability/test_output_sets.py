@@ -15,7 +15,7 @@ from skimage import data
 import torchiid
 from torchiid.cli import main
 from torchiid.core.exceptions import ImageError, ParameterError, ShapeError, TorchiidError
-from torchiid.eval.runner import EvalRunner
+from torchiid.eval import EvalOptions, EvalRunner
 from torchiid.io import layer_file_names, load_image, write_layers
 from torchiid.io.layers import OutputError, OutputSet, check_output_folder
 from torchiid.params import Parameters
@@ -281,7 +281,7 @@ def test_a_utf8_parameter_file_with_a_byte_order_mark_is_read(tmp_path):
 def test_eval_on_a_file_says_it_is_not_a_directory(tmp_path):
     f = _photo(tmp_path / "x.png")
     with pytest.raises(TorchiidError, match="x.png: is a file, not a mit dataset directory"):
-        EvalRunner("mit", f, method="r=i", output=tmp_path / "o")
+        EvalRunner("mit", f, EvalOptions(method="r=i", output=tmp_path / "o"))
     assert not (tmp_path / "o").exists()
 
 

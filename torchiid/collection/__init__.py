@@ -6,19 +6,13 @@ in this process, in ``workers`` processes (:mod:`.pool`) or on a Dask cluster
 (:mod:`.dask_runner`); :func:`process_image` is what each of them does for one image.
 """
 
+from torchiid.collection.image_files import output_names
 from torchiid.collection.job import (
-    RETINEX_DEFAULTS,
     ImageJob,
     ImageResult,
     InterruptedAfterCommit,
-    RunSettings,
-    SetupError,
     error_message,
-    file_sha256,
-    output_names,
-    params_hash,
     process_image,
-    worker_state,
 )
 from torchiid.collection.lock import FolderBusyError, OutputLock
 from torchiid.collection.manifest import MANIFEST_NAME, Manifest, ManifestWriter, Plan, plan
@@ -29,6 +23,8 @@ from torchiid.collection.runner import (
     RunSummary,
     run_collection,
 )
+from torchiid.collection.settings import RETINEX_DEFAULTS, RunSettings, file_sha256, params_hash
+from torchiid.collection.worker import SetupError, worker_state
 
 __all__ = [
     "MANIFEST_NAME",

@@ -1,7 +1,7 @@
 """``--dask-scheduler ADDRESS``: the images as tasks of an existing ``dask.distributed`` cluster.
 
 Each image is one task (:func:`dask_task`) submitted with ``retries=``; the worker that runs it
-loads the model once (:func:`~.job.worker_state`, cached in the worker process), decomposes
+loads the model once (:func:`~.worker.worker_state`, cached in the worker process), decomposes
 the image and puts its files in place itself, through the same output sets as a local run
 (so the output folder must be on a file system that every worker sees under the same path, as
 must the inputs). The client appends the manifest as the tasks end (``as_completed``).
@@ -35,15 +35,9 @@ import secrets
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
-from torchiid.collection.job import (
-    ImageJob,
-    ImageResult,
-    RunSettings,
-    error_message,
-    params_hash,
-    process_image,
-)
+from torchiid.collection.job import ImageJob, ImageResult, error_message, process_image
 from torchiid.collection.pool import remove_temporary_sets
+from torchiid.collection.settings import RunSettings, params_hash
 from torchiid.core.exceptions import TorchiidError
 
 __all__ = ["ImageTaskError", "dask_task", "run_on_dask"]

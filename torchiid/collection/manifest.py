@@ -10,7 +10,7 @@ of a key is the one that counts. Fields:
 ``size``        its size in bytes, and ``mtime_ns`` its modification time (ns), at hashing
 ``mask``        absolute path of the image's own mask file (list files), or ``null``;
                 ``mask_sha256`` its SHA-256
-``params``      the parameters hash (:func:`~torchiid.collection.job.params_hash`)
+``params``      the parameters hash (:func:`~torchiid.collection.settings.params_hash`)
 ``status``      ``"done"`` or ``"failed"``
 ``message``     the one-line error of a failed image (``null`` when done)
 ``failure``     what failed: ``"input"`` (the file cannot be used), ``"output"`` (an output
@@ -51,7 +51,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from torchiid._version import __version__
-from torchiid.collection.job import ImageJob, ImageResult, file_sha256
+from torchiid.collection.job import ImageJob, ImageResult
+from torchiid.collection.settings import file_sha256
 from torchiid.io.inputs import InputItem
 
 __all__ = [

@@ -3,7 +3,7 @@
 The workers are started with the ``spawn`` method (``fork`` after torch has started its thread
 pools is unsafe), with ``OMP_NUM_THREADS``, ``MKL_NUM_THREADS`` and ``OPENBLAS_NUM_THREADS``
 set in their environment before anything is imported, and ``torch.set_num_threads`` called
-before the first image. Each worker loads the model once (:func:`~.job.worker_state`) and then
+before the first image. Each worker loads the model once (:func:`~.worker.worker_state`) and then
 takes one image at a time over its own pipe, so the parent always knows which image each
 worker is on. When a worker dies (killed, out of memory, a crash in native code), only that
 image is lost: its temporary files are removed, it is given to a new worker again (``retries``
@@ -16,9 +16,9 @@ parent records the results that arrive, then returns. Only a signal to the paren
 a worker stopped by a signal of its own (SIGTERM or SIGINT to that process alone) is a worker
 that died; its image is given to a new worker like any other.
 
-A worker that cannot be set up (:func:`~.job.worker_state`: the model, the device, the
+A worker that cannot be set up (:func:`~.worker.worker_state`: the model, the device, the
 ``--mask`` file) says so before it takes an image, and the run stops with that
-:class:`~.job.SetupError`: every worker would fail the same way, and a bad model is not a bad
+:class:`~.worker.SetupError`: every worker would fail the same way, and a bad model is not a bad
 input.
 """
 
@@ -44,12 +44,11 @@ from torchiid.collection.job import (
     ImageJob,
     ImageResult,
     InterruptedAfterCommit,
-    RunSettings,
-    SetupError,
     process_image,
     with_attempt,
-    worker_state,
 )
+from torchiid.collection.settings import RunSettings
+from torchiid.collection.worker import SetupError, worker_state
 from torchiid.core.exceptions import TorchiidError
 
 __all__ = ["WorkerPool", "available_cores", "remove_temporary_sets"]

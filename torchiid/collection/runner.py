@@ -7,7 +7,7 @@ the images are processed in this process, by ``--workers`` processes or on a Das
 2. read the manifest once and decide what to skip (:func:`~.manifest.plan`);
 3. set up the processing (in this process: the model, the device, the ``--mask`` file; with
    workers: each worker does it and reports it), and stop the run with a one-line
-   :class:`~.job.SetupError` when that fails (nothing is recorded for the images);
+   :class:`~.worker.SetupError` when that fails (nothing is recorded for the images);
 4. process the rest, appending one manifest record per image as it ends;
 5. on an interrupt, record the images that completed, stop the workers (on Dask: cancel the
    tasks not started, wait up to :data:`~.dask_runner.STOP_GRACE` seconds for the running ones
@@ -22,16 +22,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from torchiid.collection.job import (
-    ImageJob,
-    ImageResult,
-    InterruptedAfterCommit,
-    RunSettings,
-    SetupError,
-    params_hash,
-    process_image,
-    worker_state,
-)
+from torchiid.collection.job import ImageJob, ImageResult, InterruptedAfterCommit, process_image
 from torchiid.collection.lock import OutputLock
 from torchiid.collection.manifest import (
     MANIFEST_NAME,
@@ -41,6 +32,8 @@ from torchiid.collection.manifest import (
     plan,
     record_of,
 )
+from torchiid.collection.settings import RunSettings, params_hash
+from torchiid.collection.worker import SetupError, worker_state
 from torchiid.io.inputs import InputItem
 
 __all__ = ["Progress", "Reporter", "RunInterrupted", "RunSummary", "run_collection"]

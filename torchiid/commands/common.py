@@ -19,6 +19,7 @@ __all__ = [
     "DEVICES",
     "MEMORY_LIMIT_VARIABLE",
     "THREAD_VARIABLES",
+    "add_overwrite_and_linear",
     "add_parameter_options",
     "params_from_args",
     "run_environment",
@@ -127,6 +128,16 @@ def add_parameter_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--iterations", type=int, help="alternations k (overrides the preset)")
     p.add_argument(
         "--max-side", type=int, help="working resolution: longer side in px (0 = full resolution)"
+    )
+
+
+def add_overwrite_and_linear(p: argparse.ArgumentParser, files: str = "input") -> None:
+    """``--overwrite`` and ``--linear`` (what 8/16-bit ``files`` files hold), in that order."""
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    p.add_argument(
+        "--linear",
+        action="store_true",
+        help=f"8/16-bit {files} files hold linear values (default: sRGB-encoded)",
     )
 
 

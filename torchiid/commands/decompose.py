@@ -32,6 +32,22 @@ photo-sigma.exr (the Stage 1 shading, for `torchiid edit --from`), photo-info.js
 photo-params.json; and out/manifest.jsonl, which makes a rerun skip what is done."""
 
 
+#: the options that are :class:`~torchiid.collection.RunSettings` fields of the same name
+_SETTINGS_OPTIONS = (
+    "method",
+    "linear",
+    "device",
+    "overwrite",
+    "save_npy",
+    "save_confidence",
+    "save_stage1",
+    "save_iterations",
+    "mask",
+    "threads",
+    "redo",
+)
+
+
 def add_arguments(d: argparse.ArgumentParser) -> None:
     """The options of ``torchiid decompose``."""
     d.add_argument(
@@ -216,22 +232,9 @@ def _settings(args: argparse.Namespace, params: Parameters, out: Path) -> RunSet
     if args.mask is not None:
         load_mask(args.mask)  # a missing, unreadable or empty mask is a set-up error
         mask_sha = file_sha256(args.mask)
-    return RunSettings(
-        out=out,
-        params=params,
-        method=args.method,
-        linear=args.linear,
-        device=args.device,
-        overwrite=args.overwrite,
-        save_npy=args.save_npy,
-        save_confidence=args.save_confidence,
-        save_stage1=getattr(args, "save_stage1", False),
-        save_iterations=args.save_iterations,
-        mask=args.mask,
-        mask_sha256=mask_sha,
-        threads=getattr(args, "threads", None),
-        redo=getattr(args, "redo", False),
-    )
+    # an option a caller's namespace lacks keeps the field's default
+    given = {name: getattr(args, name) for name in _SETTINGS_OPTIONS if hasattr(args, name)}
+    return RunSettings(out=out, params=params, mask_sha256=mask_sha, **given)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -20,7 +20,12 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from torchiid.commands.common import add_parameter_options, params_from_args, say
+from torchiid.commands.common import (
+    add_overwrite_and_linear,
+    add_parameter_options,
+    params_from_args,
+    say,
+)
 
 if TYPE_CHECKING:
     import torch
@@ -96,12 +101,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--amount", type=float, default=0.5, help="soften-shadows: <= 1; < 0 hardens")
     p.add_argument("--feather", type=float, default=0.0, help="soften-shadows: mask edge px")
     add_parameter_options(p)
-    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    p.add_argument(
-        "--linear",
-        action="store_true",
-        help="8/16-bit input files hold linear values (default: sRGB-encoded)",
-    )
+    add_overwrite_and_linear(p)
 
 
 def _read_exr(path: Path) -> torch.Tensor:

@@ -17,8 +17,8 @@ from torchiid.commands.common import add_parameter_options, params_from_args
 
 __all__ = ["DATASETS", "DESCRIPTION", "EPILOG", "METHODS", "add_arguments", "run"]
 
-#: the benchmark layouts and methods (:data:`torchiid.eval.scoring.DATASETS`,
-#: :data:`torchiid.eval.runner.METHODS`, named here so that ``--help`` needs no torch)
+#: the benchmark layouts and methods (:data:`torchiid.eval.datasets.DATASETS`,
+#: :data:`torchiid.eval.methods.METHODS`, named here so that ``--help`` needs no torch)
 DATASETS = ("iiw", "mit", "saw", "dense")
 METHODS = ("semantic", "retinex", "r=i", "s=i")
 
@@ -193,6 +193,7 @@ def _report_failure(sample_id: str, exc: Exception) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``torchiid eval``; returns the exit status (1 if any image failed)."""
     from torchiid.core.exceptions import ParameterError
+    from torchiid.eval.options import EvalOptions, check_ranges
     from torchiid.eval.runner import EvalRunner
 
     if args.dataset == "video":
@@ -201,17 +202,10 @@ def run(args: argparse.Namespace) -> int:
         return run_eval_video(args)
     if args.results_dir is not None:
         raise ParameterError(f"eval {args.dataset} takes one folder, got {args.results_dir} too")
-    if args.batch_size < 1:
-        raise ParameterError(f"--batch-size must be >= 1, got {args.batch_size}")
-    if args.limit is not None and args.limit < 1:
-        raise ParameterError(f"--limit must be >= 1, got {args.limit}")
-    if not args.delta >= 0:
-        raise ParameterError(f"--delta must be >= 0, got {args.delta}")
+    check_ranges(args.batch_size, args.limit, args.delta, flags=True)
     scoring = args.results is not None
     params = params_from_args(args) if not scoring and args.method == "semantic" else None
-    runner = EvalRunner(
-        args.dataset,
-        args.dir,
+    options = EvalOptions(
         method=args.method,
         params=params,
         output=args.output,
@@ -227,7 +221,7 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         on_failure=_report_failure,
     )
-    result = runner.run()
+    result = EvalRunner(args.dataset, args.dir, options).run()
     data = result.summary
     print(_table(list(result.rows), result.rows, list(result.columns), data["mean"]))
     if args.dataset == "saw":

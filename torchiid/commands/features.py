@@ -6,6 +6,8 @@ import argparse
 import time
 from pathlib import Path
 
+from torchiid.commands.common import add_overwrite_and_linear
+
 __all__ = ["DESCRIPTION", "OUTPUTS", "add_arguments", "run"]
 
 DESCRIPTION = (
@@ -23,12 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--mode", default="shared", choices=["shared", "crop"], help="patch feature mode"
     )
-    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    p.add_argument(
-        "--linear",
-        action="store_true",
-        help="8/16-bit input files hold linear values (default: sRGB-encoded)",
-    )
+    add_overwrite_and_linear(p)
 
 
 def run(args: argparse.Namespace) -> int:

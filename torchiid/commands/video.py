@@ -12,7 +12,11 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from torchiid.commands.common import add_parameter_options, params_from_args
+from torchiid.commands.common import (
+    add_overwrite_and_linear,
+    add_parameter_options,
+    params_from_args,
+)
 
 if TYPE_CHECKING:
     from torchiid.params import Parameters
@@ -101,12 +105,7 @@ def add_arguments(v: argparse.ArgumentParser) -> None:
     v.add_argument(
         "--save-npy", action="store_true", help="also write float32 linear .npy arrays per frame"
     )
-    v.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    v.add_argument(
-        "--linear",
-        action="store_true",
-        help="8/16-bit frame files hold linear values (default: sRGB-encoded)",
-    )
+    add_overwrite_and_linear(v, files="frame")
 
 
 def options_from_args(args: argparse.Namespace) -> VideoOptions:

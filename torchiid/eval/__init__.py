@@ -1,6 +1,7 @@
 """Evaluation: WHDR, LMSE, SAW AP, si-MSE / DSSIM metrics, dataset readers and eval runs."""
 
 from torchiid.eval.datasets import (
+    DATASETS,
     DatasetError,
     DenseFolderDataset,
     DenseSample,
@@ -9,23 +10,19 @@ from torchiid.eval.datasets import (
     MITDataset,
     SAWDataset,
     SAWSample,
+    open_dataset,
     read_id_list,
     saw_labels_from_release,
 )
 from torchiid.eval.dense import dssim, scale_to_match, si_mse, ssim
 from torchiid.eval.lmse import local_mse, mit_lmse
+from torchiid.eval.methods import METHODS, method_parameters, run_method
+from torchiid.eval.options import EvalOptions
+from torchiid.eval.outputs import EvalResult
 from torchiid.eval.results import load_layer
-from torchiid.eval.runner import (
-    METHODS,
-    EvalResult,
-    EvalRunner,
-    method_parameters,
-    open_dataset,
-    run_evaluation,
-    run_method,
-)
+from torchiid.eval.runner import EvalRunner, run_evaluation
 from torchiid.eval.saw import average_precision, saw_ap, saw_scores
-from torchiid.eval.scoring import COUNT_COLUMNS, DATASETS, METRICS, pooled_saw_ap, score_sample
+from torchiid.eval.scoring import COUNT_COLUMNS, METRICS, pooled_saw_ap, score_sample
 from torchiid.eval.whdr import load_judgements, whdr
 
 __all__ = [
@@ -34,6 +31,7 @@ __all__ = [
     "DatasetError",
     "DenseFolderDataset",
     "DenseSample",
+    "EvalOptions",
     "EvalResult",
     "EvalRunner",
     "IIWDataset",

@@ -27,7 +27,7 @@ sRGB. Layouts:
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, TypeVar
@@ -35,10 +35,11 @@ from typing import Any, Generic, TypeVar
 import numpy as np
 import torch
 
-from torchiid.core.exceptions import ImageError, TorchiidError
+from torchiid.core.exceptions import ImageError, ParameterError, TorchiidError
 from torchiid.io import load_image, load_mask, srgb_to_linear
 
 __all__ = [
+    "DATASETS",
     "DatasetError",
     "IIWSample",
     "DenseSample",
@@ -47,9 +48,13 @@ __all__ = [
     "MITDataset",
     "SAWDataset",
     "DenseFolderDataset",
+    "open_dataset",
     "read_id_list",
     "saw_labels_from_release",
 ]
+
+DATASETS = ("iiw", "mit", "saw", "dense")
+"""The benchmark layouts (see :mod:`torchiid.eval.datasets`)."""
 
 MIT_FILES = ("original.png", "diffuse.png", "reflectance.png", "shading.png", "mask.png")
 
@@ -72,6 +77,14 @@ def _read(path: Path, srgb: bool | None = None) -> torch.Tensor:
         raise DatasetError(str(exc)) from exc
     decode = srgb if srgb is not None else loaded.bit_depth == 8
     return srgb_to_linear(loaded.image) if decode else loaded.image
+
+
+def _read_file(path: Path, what: str, read: Callable[[Path], Any]) -> Any:
+    """``read(path)``; a file that cannot be read or parsed is a :class:`DatasetError`."""
+    try:
+        return read(path)
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"cannot read {what} {path}: {exc}") from exc
 
 
 def _read_mask(path: Path) -> torch.Tensor:
@@ -180,6 +193,12 @@ def _require_dir(root: str | Path, what: str) -> Path:
     return root
 
 
+def _photos_with(image_dir: Path, companion: Callable[[str], Path]) -> list[str]:
+    """Stems of the ``*.png`` photos whose companion file exists, in numeric id order."""
+    stems = (p.stem for p in image_dir.glob("*.png") if companion(p.stem).is_file())
+    return sorted(stems, key=lambda s: (len(s), s))
+
+
 def _select(found: Sequence[str], ids: Sequence[str] | str | Path | None, what: str) -> tuple:
     if ids is None:
         if not found:
@@ -205,20 +224,14 @@ class IIWDataset(_LazyDataset[IIWSample]):
     def __init__(self, root: str | Path, ids: Sequence[str] | str | Path | None = None) -> None:
         root = _require_dir(root, "IIW")
         self.dir = root / "data" if (root / "data").is_dir() else root
-        found = sorted(
-            (p.stem for p in self.dir.glob("*.png") if p.with_suffix(".json").is_file()),
-            key=lambda s: (len(s), s),
-        )
+        found = _photos_with(self.dir, lambda stem: self.dir / f"{stem}.json")
         self.ids = _select(found, ids, f"IIW photos with judgements in {self.dir}")
 
     def load(self, sample_id: str) -> IIWSample:
         """Read photo ``<id>.png`` (sRGB → linear) and ``<id>.json``."""
         image = _read(self.dir / f"{sample_id}.png", srgb=True)
         jpath = self.dir / f"{sample_id}.json"
-        try:
-            judgements = json.loads(jpath.read_text())
-        except (OSError, ValueError) as exc:
-            raise DatasetError(f"cannot read judgements {jpath}: {exc}") from exc
+        judgements = _read_file(jpath, "judgements", lambda p: json.loads(p.read_text()))
         mask = torch.ones(1, *image.shape[-2:], dtype=torch.bool)
         return IIWSample(sample_id, image, judgements, mask)
 
@@ -285,24 +298,14 @@ class SAWDataset(_LazyDataset[SAWSample]):
         self.image_dir = _require_dir(root / image_dir, "SAW image")
         self.label_dir = _require_dir(root / label_dir, "SAW label")
         self.release_labels = release_labels
-        found = sorted(
-            (
-                p.stem
-                for p in self.image_dir.glob("*.png")
-                if (self.label_dir / f"{p.stem}.npy").is_file()
-            ),
-            key=lambda s: (len(s), s),
-        )
+        found = _photos_with(self.image_dir, lambda stem: self.label_dir / f"{stem}.npy")
         self.ids = _select(found, ids, f"SAW photos with labels in {root}")
 
     def load(self, sample_id: str) -> SAWSample:
         """Read photo (sRGB → linear) and label map."""
         image = _read(self.image_dir / f"{sample_id}.png", srgb=True)
         lpath = self.label_dir / f"{sample_id}.npy"
-        try:
-            raw = np.load(lpath, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise DatasetError(f"cannot read SAW labels {lpath}: {exc}") from exc
+        raw = _read_file(lpath, "SAW labels", lambda p: np.load(p, allow_pickle=False))
         if raw.shape != tuple(image.shape[-2:]):
             raise DatasetError(
                 f"{lpath}: labels {raw.shape} do not match photo {tuple(image.shape[-2:])}"
@@ -352,3 +355,56 @@ class DenseFolderDataset(_LazyDataset[DenseSample]):
             mask = torch.ones(1, *image.shape[-2:], dtype=torch.bool)
         _same_size(self.root / sample_id, image, refl, shading, mask)
         return DenseSample(sample_id, image, refl, shading, mask)
+
+
+Sample = IIWSample | DenseSample | SAWSample
+EvalDataset = IIWDataset | MITDataset | SAWDataset | DenseFolderDataset
+
+
+def open_dataset(
+    dataset: str,
+    root: str | Path,
+    ids: Sequence[str] | str | Path | None = None,
+    *,
+    input: str = "diffuse",
+) -> EvalDataset:
+    """Open an evaluation dataset by layout name.
+
+    Args:
+        dataset: ``"iiw"``, ``"mit"``, ``"saw"`` or ``"dense"`` (see the module notes).
+        root: the dataset directory.
+        ids: the ids to evaluate, in this order: a sequence, or the path of a file of ids
+            (one a line, e.g. an IIW/SAW test split); ``None`` for every image.
+        input: MIT input image, ``"diffuse"`` (the standard protocol) or ``"original"``.
+
+    Returns:
+        The dataset reader; its ``ids`` are the selected ids.
+
+    Raises:
+        DatasetError: missing directory or files, or ids that are not in the dataset.
+        ParameterError: unknown ``dataset``.
+    """
+    check_dataset(dataset)
+    root = Path(root)
+    from_file = isinstance(ids, (str, Path))
+    wanted = read_id_list(ids) if from_file else None if ids is None else [str(i) for i in ids]
+    if dataset == "iiw":
+        return IIWDataset(root, ids=wanted)
+    if dataset == "mit":
+        return MITDataset(root, objects=wanted, input=input)
+    if dataset == "saw":
+        return SAWDataset(root, ids=wanted)
+    ds = DenseFolderDataset(root)
+    if wanted is not None:
+        missing = sorted(set(wanted) - set(ds.ids))
+        if missing:
+            which = f"ids of {ids}" if from_file else "of the given ids"
+            raise DatasetError(f"{len(missing)} {which} are not in {root}: {missing[:5]}")
+        ds.ids = tuple(wanted)
+    return ds
+
+
+def check_dataset(dataset: str) -> None:
+    """Raise :class:`ParameterError` unless ``dataset`` is one of :data:`DATASETS`."""
+    if dataset not in DATASETS:
+        raise ParameterError(f"unknown dataset {dataset!r}; choose one of {', '.join(DATASETS)}")

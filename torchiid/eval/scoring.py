@@ -21,17 +21,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchiid.core.exceptions import ParameterError, ShapeError
-from torchiid.eval.datasets import DenseSample, IIWSample, SAWSample
+from torchiid.core.exceptions import ShapeError
+from torchiid.eval.datasets import DATASETS, DenseSample, IIWSample, SAWSample, check_dataset
 from torchiid.eval.dense import dssim, si_mse
 from torchiid.eval.lmse import local_mse, mit_lmse
 from torchiid.eval.saw import average_precision, saw_scores
 from torchiid.eval.whdr import whdr
 
 __all__ = ["COUNT_COLUMNS", "DATASETS", "METRICS", "pooled_saw_ap", "score_sample"]
-
-DATASETS = ("iiw", "mit", "saw", "dense")
-"""The benchmark layouts (see :mod:`torchiid.eval.datasets`)."""
 
 METRICS: dict[str, tuple[str, ...]] = {
     "iiw": ("whdr",),
@@ -85,8 +82,7 @@ def score_sample(
         ShapeError: a layer's size differs from the image's.
         ParameterError: unknown ``dataset``.
     """
-    if dataset not in METRICS:
-        raise ParameterError(f"unknown dataset {dataset!r}; choose one of {', '.join(DATASETS)}")
+    check_dataset(dataset)
     size = tuple(sample.image.shape[-2:])
     for name, x in (("reflectance", reflectance), ("shading", shading)):
         if tuple(x.shape[-2:]) != size:

@@ -39,8 +39,24 @@ IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".e
 _MAGIC = set("*?[")
 
 
+class KeyParts:
+    """The :attr:`stem` and :attr:`folder` of an output ``key``, for the classes that hold one."""
+
+    key: str
+
+    @property
+    def stem(self) -> str:
+        """The last part of the key: the prefix of the image's output file names."""
+        return self.key.rpartition("/")[2]
+
+    @property
+    def folder(self) -> str:
+        """The folder part of the key (``""`` for the output folder itself)."""
+        return self.key.rpartition("/")[0]
+
+
 @dataclass(frozen=True)
-class InputItem:
+class InputItem(KeyParts):
     """One image to process.
 
     Attributes:
@@ -53,16 +69,6 @@ class InputItem:
     path: Path
     key: str
     mask: Path | None = None
-
-    @property
-    def stem(self) -> str:
-        """The last part of the key: the prefix of the image's output file names."""
-        return self.key.rpartition("/")[2]
-
-    @property
-    def folder(self) -> str:
-        """The folder part of the key (``""`` for the output folder itself)."""
-        return self.key.rpartition("/")[0]
 
 
 def _is_image(name: str) -> bool:

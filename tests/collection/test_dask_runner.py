@@ -22,7 +22,7 @@ from torchiid.io.inputs import InputItem
 from torchiid.io.layers import layer_file_names
 from torchiid.params import Parameters
 
-from conftest import FAST
+from conftest import FAST, photo
 
 distributed = pytest.importorskip("distributed")
 
@@ -158,3 +158,14 @@ def test_ctrl_c_waits_for_the_running_tasks_and_names_those_left(
     assert "waiting up to 0.5 s for the 1 image(s) running on the cluster" in caplog.text
     assert "note: 1 image(s) were still running on the cluster and may still write" in err
     assert str(src) in err.splitlines()[-1]
+
+
+@pytest.mark.parametrize("address", ["tcp://127.0.0.1:9"])
+def test_an_unreachable_scheduler_is_a_set_up_error(tmp_path, capsys, monkeypatch, address):
+    monkeypatch.setattr("torchiid.collection.dask_runner.CONNECT_TIMEOUT", 1.0)
+    cover = photo(tmp_path / "c.png")
+    argv = ["decompose", str(cover), "-o", str(tmp_path / "o"), "--dask-scheduler", address]
+    assert main([*argv, *FAST]) == 2
+    err = capsys.readouterr().err
+    assert f"cannot reach the Dask scheduler at {address}" in err
+    assert not (tmp_path / "o").exists()
