@@ -22,7 +22,7 @@ from torchiid.io.inputs import InputItem
 from torchiid.io.layers import layer_file_names
 from torchiid.params import Parameters
 
-from conftest import FAST, photo
+from collection_helpers import FAST, photo
 
 distributed = pytest.importorskip("distributed")
 

@@ -9,7 +9,7 @@ from torchiid.collection import ImageJob, Manifest, RunSettings
 from torchiid.collection.manifest import read_records
 from torchiid.params import Parameters
 
-from conftest import FAST, photo
+from collection_helpers import FAST, photo
 
 
 def _last(out):

@@ -7,7 +7,7 @@ import os
 from torchiid.cli import main
 from torchiid.collection import OutputLock
 
-from conftest import FAST
+from collection_helpers import FAST
 
 
 def _run(*args):

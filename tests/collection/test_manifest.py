@@ -24,7 +24,7 @@ from torchiid.io.inputs import list_inputs, unique_keys
 from torchiid.io.layers import layer_file_names
 from torchiid.params import Parameters
 
-from conftest import FAST, photo
+from collection_helpers import FAST, photo
 
 
 def _records(out):

@@ -23,7 +23,7 @@ from torchiid.io.inputs import list_inputs
 from torchiid.io.layers import layer_file_names
 from torchiid.params import Parameters
 
-from conftest import FAST
+from collection_helpers import FAST
 
 
 def _kill_when_held(folder, stem, sig=signal.SIGKILL, timeout=90):

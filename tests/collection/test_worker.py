@@ -7,7 +7,7 @@ from torchiid.collection import ImageJob, RunSettings, process_image
 from torchiid.core.exceptions import ModelError
 from torchiid.params import Parameters
 
-from conftest import FAST
+from collection_helpers import FAST
 
 
 def _run(*args):
