@@ -4,8 +4,8 @@ Five photos shipped with scikit-image (coffee, chelsea, astronaut, rocket and th
 the stereo motorcycle), centre-cropped to 3:2 and resized to 512x341, saved as 8-bit sRGB PNGs.
 Each pair of runs gives the same five files to
 
-- torchiid: ``torchiid decompose PHOTOS -o OUT --overwrite`` (default preset, as a user runs it:
-  one process, start-up and every output file included), and
+- torchiid: ``torchiid decompose PHOTOS -o OUT`` into an empty folder (default preset, as a
+  user runs it: one process, start-up and every output file included), and
 - Bell et al.: ``python tools/bell2014_port.py decompose PORT PHOTOS... -o OUT`` (their
   ``IntrinsicSolver`` with their default parameters, one process: imports, reading, the
   solves and two layers per photo written),
@@ -15,7 +15,7 @@ the first of the two alternating from pair to pair; ``--torchiid-threads N`` set
 process's wall seconds per photo (its wall time / 5), its CPU seconds per photo
 (``RUSAGE_CHILDREN``, which other load on the machine inflates less) and the ratios
 Bell / torchiid; then the medians over the pairs, and the per-photo times each process
-reports for its own work (torchiid's ``(N s)`` lines, the solves of Bell's), with the load
+reports for its own work (the seconds in torchiid's manifest, the solves of Bell's), with the load
 average before each run.
 
     python tools/bell2014_port.py prepare SRC -o ../bell2014-py3
@@ -27,8 +27,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import resource
+import shutil
 import statistics
 import subprocess
 import sys
@@ -37,7 +37,6 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 PHOTOS = ("coffee", "chelsea", "astronaut", "rocket", "motorcycle")
-_TORCHIID_LINE = re.compile(r"^(\S+) -> .*\((\d+(?:\.\d+)?) s\)")
 
 
 def make_photos(folder: Path, width: int = 512, height: int = 341) -> list[Path]:
@@ -80,12 +79,15 @@ def run_torchiid(photos: list[Path], out: Path, extra: list[str], threads: int =
     """One ``torchiid decompose`` process on every photo (``threads``: ``OMP_NUM_THREADS``)."""
     cmd = [sys.executable, "-m", "torchiid.cli", "decompose", *map(str, photos), "-o", str(out)]
     env = {**os.environ, "OMP_NUM_THREADS": str(threads)} if threads else None
-    wall, cpu, text = _run([*cmd, "--overwrite", "--no-progress", *extra], env)
+    wall, cpu, _ = _run([*cmd, "--overwrite", "--no-progress", *extra], env)
     per = {}
-    for line in text.splitlines():
-        m = _TORCHIID_LINE.match(line.strip())
-        if m:
-            per[Path(m.group(1)).stem] = float(m.group(2))
+    with open(out / "manifest.jsonl") as fh:  # one record per photo, with its seconds
+        for line in fh:
+            row = json.loads(line)
+            if row.get("status") == "done":
+                per[row["key"]] = row["seconds"]
+    if len(per) != len(photos):
+        raise SystemExit(f"{out}: torchiid decomposed {len(per)} of {len(photos)} photos")
     return {"wall": wall, "cpu": cpu, "per_photo": per}
 
 
@@ -128,20 +130,23 @@ def main() -> None:
         row = {}
         for who in order:
             load = _load()
-            out = args.output / who
+            # a fresh folder: torchiid skips the photos its manifest already records as done
+            out = args.output / f"{who}-{pair + 1}"
+            shutil.rmtree(out, ignore_errors=True)
             if who == "torchiid":
                 row[who] = run_torchiid(photos, out, args.torchiid_args, args.torchiid_threads)
             else:
                 row[who] = run_bell(args.port, photos, out)
             row[who]["load"] = load
             res = row[who]
+            each = ", ".join(f"{k} {v:.1f}" for k, v in res["per_photo"].items())
             print(
                 f"pair {pair + 1} {who}: {res['wall']:.1f} s wall, {res['cpu']:.1f} s CPU "
-                f"for {n} photos (load average before: {load})",
+                f"for {n} photos ({each}; load average before: {load})",
                 flush=True,
             )
         rows.append(row)
-    (args.output / "runs.json").write_text(json.dumps(rows, indent=1))
+        (args.output / "runs.json").write_text(json.dumps(rows, indent=1))
 
     print(f"\nSeconds per photo, {n} photos of {width}x{height} per process")
     print("| pair | first | torchiid wall | Bell wall | ratio | torchiid CPU | Bell CPU | ratio |")
@@ -154,7 +159,7 @@ def main() -> None:
         first = "torchiid" if i % 2 == 0 else "Bell"
         print(
             f"| {i + 1} | {first} | {t['wall'] / n:.2f} | {b['wall'] / n:.1f} | "
-            f"{ratios[-1]:.0f}x | {t['cpu'] / n:.2f} | {b['cpu'] / n:.1f} | {cpu_ratios[-1]:.0f}x |"
+            f"{ratios[-1]:.1f}x | {t['cpu'] / n:.2f} | {b['cpu'] / n:.1f} | {cpu_ratios[-1]:.1f}x |"
         )
 
     def med(who: str, key: str) -> float:
@@ -162,8 +167,8 @@ def main() -> None:
 
     print(
         f"| **median** | | **{med('torchiid', 'wall'):.2f}** | **{med('bell', 'wall'):.1f}** | "
-        f"**{statistics.median(ratios):.0f}x** | {med('torchiid', 'cpu'):.2f} | "
-        f"{med('bell', 'cpu'):.1f} | {statistics.median(cpu_ratios):.0f}x |"
+        f"**{statistics.median(ratios):.1f}x** | {med('torchiid', 'cpu'):.2f} | "
+        f"{med('bell', 'cpu'):.1f} | {statistics.median(cpu_ratios):.1f}x |"
     )
     print(f"\nPer photo, as each process reports its own work (median over the {len(rows)} pairs)")
     print("| photo | torchiid s | Bell s | ratio |")
@@ -174,7 +179,7 @@ def main() -> None:
         if None in t or None in b:
             continue
         tm, bm = statistics.median(t), statistics.median(b)
-        print(f"| {path.stem} | {tm:.1f} | {bm:.1f} | {bm / tm:.0f}x |")
+        print(f"| {path.stem} | {tm:.1f} | {bm:.1f} | {bm / tm:.1f}x |")
     print(f"\nload average at end: {_load()}")
 
 
