@@ -53,7 +53,7 @@ stops, follow library changes and one data file the snapshot lacks:
   that they used (scikit-learn 1.4 changed them to 1 and 1024).
 - ``ProbAbsoluteReflectance`` loads ``prob_abs_r.dat`` only when ``abs_reflectance_weight``
   is nonzero: with their default weight 0 the density is never evaluated, and the file (and
-  the ``bsdfs.csv`` it is made from, both 4 MiB or more) may be missing from a copy. With a
+  the ``bsdfs.csv`` it is made from) may be missing from a copy. With a
   nonzero weight the file is required as before (read with ``encoding="latin1"``, as Python 2
   pickles need); ``np.histogramdd(normed=)`` is ``density=``, and the histogram is indexed
   with a tuple.
