@@ -99,13 +99,13 @@ def _bregman_update(
                 wr = w[b, k, y, x0 : x0 + n]
                 rj = r + dy
                 for c in range(nc):
-                    oi = rhs[b, c, y, x0 : x0 + n]
-                    if rj < r1:
-                        oj = rhs[b, c, y + dy, x0 + dx : x0 + dx + n]
-                    else:
-                        oj = halo[blk, rj - r1, c, x0 + dx : x0 + dx + n]
+                    pos = (b, c, y, dy, x0, dx, rj - r1)  # rj >= r1: j's row is past the block
+                    oi, oj = _pair_runs(rhs, halo[blk], pos, n)
                     bb = bbuf[:n]
-                    _read_state(state, b, c, k, y, x0, bb, read, quant, scale_in)
+                    if read:
+                        _decode(state[b, c, k, y, x0 : x0 + n], bb, quant, scale_in)
+                    else:
+                        bb[:] = 0.0
                     for s in range(m):
                         zi = zs[s, b, c, y, x0 : x0 + n]
                         zj = zs[s, b, c, y + dy, x0 + dx : x0 + dx + n]
@@ -124,11 +124,7 @@ def _bregman_update(
                         elif write:
                             sr = state[b, c, k, y, x0 : x0 + n]
                             sr[:] = nw
-                        ai = adj[b, c, y, x0 : x0 + n]
-                        if rj < r1:
-                            aj = adj[b, c, y + dy, x0 + dx : x0 + dx + n]
-                        else:
-                            aj = halo2[blk, rj - r1, c, x0 + dx : x0 + dx + n]
+                        ai, aj = _pair_runs(adj, halo2[blk], pos, n)
                         cb = cbuf[:n]
                         for t in range(n):
                             ai[t] += cb[t]
@@ -224,28 +220,30 @@ def _add_halos(rhs: Array, halo: Array, block: int) -> Array:  # pragma: no cove
 
 
 @njit(inline="always")
-def _read_state(  # pragma: no cover - compiled
-    state: Array,
-    b: int,
-    c: int,
-    k: int,
-    y: int,
-    x0: int,
-    bb: Array,
-    read: bool,
-    quant: bool,
-    scale_in: float,
-) -> None:
-    """A run of ``len(bb)`` Bregman variables from ``state`` (decoded when fixed point), or 0."""
-    n = bb.shape[0]
-    if read and quant:
-        sq = state[b, c, k, y, x0 : x0 + n]
-        for t in range(n):
-            bb[t] = sq[t] * scale_in
-    elif read:
-        bb[:] = state[b, c, k, y, x0 : x0 + n]
+def _pair_runs(
+    out: Array, spill: Array, pos: tuple[int, int, int, int, int, int, int], n: int
+) -> tuple[Array, Array]:  # pragma: no cover - compiled
+    """The runs of ``n`` pairs' first and second pixels in ``out`` ``(B, C, H, W)``.
+
+    ``pos = (b, c, y, dy, x0, dx, past)``: the run starts at ``(y, x0)`` of image ``b``,
+    channel ``c``; its partners are ``(dy, dx)`` away. ``past >= 0``: the partners' row lies
+    ``past`` rows after the block, in its halo ``spill`` ``(D, C, W)``.
+    """
+    b, c, y, dy, x0, dx, past = pos
+    first = out[b, c, y, x0 : x0 + n]
+    if past < 0:
+        return first, out[b, c, y + dy, x0 + dx : x0 + dx + n]
+    return first, spill[past, c, x0 + dx : x0 + dx + n]
+
+
+@njit(inline="always")
+def _decode(src: Array, bb: Array, quant: bool, scale_in: float) -> None:  # pragma: no cover
+    """A run of stored Bregman variables into ``bb`` (decoded when fixed point)."""
+    if quant:
+        for t in range(bb.shape[0]):
+            bb[t] = src[t] * scale_in
     else:
-        bb[:] = 0.0
+        bb[:] = src
 
 
 bregman_update = njit(nogil=True, cache=True, boundscheck=False)(_bregman_update)

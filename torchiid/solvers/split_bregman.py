@@ -64,8 +64,6 @@ __all__ = [
     "GAP_FLOOR",
 ]
 
-logger = logging.getLogger(__name__)
-
 
 @dataclass(frozen=True)
 class SplitBregmanOptions:
@@ -113,6 +111,8 @@ class SplitBregmanOptions:
     theta_range: tuple[float, float] | None = None
     balance: tuple[float, float] = (10.0, 1.0)
 
+
+logger = logging.getLogger(__name__)
 
 _OPTION_NAMES = frozenset(f.name for f in dataclasses.fields(SplitBregmanOptions))
 
