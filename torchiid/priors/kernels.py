@@ -227,8 +227,8 @@ def stencil_affinity(
     out.exp_()  # torch's exp is vectorised (the kernel's would be libm's, one call per pair)
     if sem is not None:
         rows = b * len(offsets) * h
-        args = (out.view(rows, w).numpy(), sem.view(rows, w).numpy(), np_dt(a_l), np_dt(a_m))
-        run_bands(kernel.scale_by_factor, args, bands(rows, rows * w * 2))
+        scaled = (out.view(rows, w).numpy(), sem.view(rows, w).numpy(), np_dt(a_l), np_dt(a_m))
+        run_bands(kernel.scale_by_factor, scaled, bands(rows, rows * w * 2))
     if given is not None and given is not out:
         return given.copy_(out)
     return out

@@ -16,12 +16,13 @@ one channel), the canonical reference the fast paths are tested against.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, overload
 
 import torch
 
 from torchiid.core.exceptions import ParameterError
 
-__all__ = ["BregmanStats", "L1Term", "PairL1Term", "data_term"]
+__all__ = ["BregmanStats", "L1Term", "MeasuredStep", "PairL1Term", "Step", "data_term"]
 
 
 def data_term(z: torch.Tensor, rho: torch.Tensor, gamma_a: float = 1.0) -> torch.Tensor:
@@ -52,6 +53,15 @@ class BregmanStats:
     adjoint: torch.Tensor
 
 
+#: what ``bregman_step`` returns: the term's new state (opaque to the solver, which hands it
+#: back to the next update), the update's part of the ``z`` step's right-hand side and
+#: ``‖W M z‖₁`` (``None`` unless asked for)
+Step = tuple[object, torch.Tensor, "torch.Tensor | None"]
+
+#: ``bregman_step(..., stats=True)``: also the update's :class:`BregmanStats`
+MeasuredStep = tuple[object, torch.Tensor, torch.Tensor, "BregmanStats"]
+
+
 def _sums(x: torch.Tensor) -> torch.Tensor:
     return x.flatten(1).sum(dim=1)
 
@@ -79,14 +89,37 @@ class L1Term:
         """``‖W M z‖₁`` per image, shape ``(B,)``."""
         return self.apply(z).abs().flatten(1).sum(dim=1)
 
+    @overload
+    def bregman_step(
+        self,
+        z: torch.Tensor,
+        b: torch.Tensor | None,
+        lam: float,
+        with_l1: bool = ...,
+        *,
+        stats: Literal[False] = ...,
+    ) -> Step: ...
+
+    @overload
+    def bregman_step(
+        self,
+        z: torch.Tensor,
+        b: torch.Tensor | None,
+        lam: float,
+        with_l1: bool = ...,
+        *,
+        stats: Literal[True],
+    ) -> MeasuredStep: ...
+
     def bregman_step(
         self,
         z: torch.Tensor,
         b: torch.Tensor | None,
         lam: float,
         with_l1: bool = True,
+        *,
         stats: bool = False,
-    ):
+    ) -> Step | MeasuredStep:
         """One Bregman update (Goldstein & Osher 2009) at ``z``.
 
         With ``u = W M z + b``: ``d = shrink(u, λ)``, ``b ← u − d = clamp(u, −λ, λ)`` (in place),
@@ -104,14 +137,16 @@ class L1Term:
         u = wz if b is None else wz.add_(b)
         b = u.clamp(-lam, lam) if b is None else b.copy_(u.clamp(-lam, lam))
         measured = None
-        if stats:
+        if l1 is not None and apply_sq is not None:  # stats
             primal = _sums(b.square() if old is None else (b - old).square_())
             split_sq = _sums((u - b).square_())
             measured = BregmanStats(l1, primal, apply_sq, split_sq, self.adjoint(b))
         rhs = self.adjoint(u.sub_(b).sub_(b))
-        return (b, rhs, l1, measured) if stats else (b, rhs, l1)
+        return (b, rhs, l1) if measured is None else (b, rhs, measured.l1, measured)
 
-    def rescale_state(self, b: torch.Tensor | None, lam: float, new_lam: float):
+    def rescale_state(
+        self, b: torch.Tensor | None, lam: float, new_lam: float
+    ) -> torch.Tensor | None:
         """The state ``b`` written at threshold ``lam`` for ``new_lam``: ``b · new_lam / lam``.
 
         Keeps the dual variable ``b / λ`` (Split-Bregman's penalty ``θ = γ / λ`` changes, the

@@ -64,7 +64,7 @@ def _centred64(base: torch.Tensor) -> torch.Tensor:
     return i64 - i64.mean(dim=(2, 3), keepdim=True)
 
 
-def _compiled_stencil(qp: torch.Tensor, i64: torch.Tensor, dtype: torch.dtype):
+def _compiled_stencil(qp: torch.Tensor, i64: torch.Tensor, dtype: torch.dtype) -> StencilQuadratic:
     """The 5×5 stencil term from the window summands ``qp`` by the compiled weights pass."""
     _, _, h, w = i64.shape
     stencil = Stencil(h, w, half_offsets(5), device=i64.device)

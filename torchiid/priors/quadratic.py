@@ -23,6 +23,12 @@ from torchiid.priors.quadratic_term import QuadraticTerm, sparse_gram
 from torchiid.priors.row_quadratics import ConstraintQuadratic, DiagonalQuadratic, PairQuadratic
 from torchiid.priors.stencil import Stencil, shift_slices
 
+#: both directions of every pair: ``(slices, weight view)``, the weights ``(B, 2K, H, W)`` and
+#: the degree ``(B, 1, H, W)``
+_Directed = tuple[
+    list[tuple[tuple[slice, slice, slice, slice], torch.Tensor]], torch.Tensor, torch.Tensor
+]
+
 __all__ = [
     "QuadraticTerm",
     "StencilQuadratic",
@@ -74,13 +80,13 @@ class StencilQuadratic(QuadraticTerm):
         self.dtype = weights.dtype
         self.device = weights.device
 
-    def _directed(self) -> tuple[list, torch.Tensor, torch.Tensor]:
+    def _directed(self) -> _Directed:
         """Both pair directions: ``(slices, weight view)`` each, weights ``(B, 2K, H, W)``, degree.
 
         Cached for the current ``weights`` tensor (recomputed when it is replaced, e.g. by
         :class:`SumQuadratic` merging terms).
         """
-        cache = self.__dict__.get("_directed_cache")
+        cache: tuple[torch.Tensor, _Directed] | None = self.__dict__.get("_directed_cache")
         if cache is not None and cache[0] is self.weights:
             return cache[1]
         b, k_, h, w = self.weights.shape
@@ -204,7 +210,7 @@ class SumQuadratic(QuadraticTerm):
             # accumulate lam * t, offset by offset, into one term on the widest stencil
             # (or on t's own when it does not fit): one buffer per stencil, no per-term copies
             fits = widest is not None and set(t.stencil.offsets) <= set(widest.offsets)
-            st = widest if fits else t.stencil
+            st = widest if widest is not None and fits else t.stencil
             m = merged.get(id(st))
             if m is None:
                 m = StencilQuadratic.__new__(StencilQuadratic)
@@ -226,13 +232,14 @@ class SumQuadratic(QuadraticTerm):
                     dst[:, pos[o]].add_(src[:, n], alpha=lam)
         self.terms: list[tuple[float, QuadraticTerm]] = [(1.0, m) for m in merged.values()] + others
         first = active[0][1]
-        self.shape = tuple(first.shape)
+        b, c, h, w = first.shape
+        self.shape = (b, c, h, w)
         self.dtype = first.dtype
         self.device = first.device
 
     def matvec(self, x: torch.Tensor) -> torch.Tensor:
         """``sum_t lambda_t A_t x``."""
-        out = None
+        out: torch.Tensor | None = None
         for lam, t in self.terms:
             if out is not None and isinstance(t, ConstraintQuadratic):
                 t.add_matvec(x, out, lam)  # into the stencil's fresh product, no HxW temporary
@@ -242,20 +249,35 @@ class SumQuadratic(QuadraticTerm):
                 out = y if lam == 1.0 else lam * y
             else:
                 out = out.add_(y, alpha=lam)  # out is a fresh tensor of this call
-        return out
+        return _nonempty(out)
 
     def diagonal(self) -> torch.Tensor:
         """``sum_t lambda_t diag(A_t)``."""
-        return sum(lam * t.diagonal() for lam, t in self.terms)
+        out: torch.Tensor | None = None
+        for lam, t in self.terms:
+            d = lam * t.diagonal()
+            out = 0 + d if out is None else out + d  # Python's sum, from 0
+        return _nonempty(out)
 
     def rhs(self) -> torch.Tensor:
         """``sum_t lambda_t b_t``."""
-        return sum(lam * t.rhs() for lam, t in self.terms)
+        out: torch.Tensor | None = None
+        for lam, t in self.terms:
+            r = lam * t.rhs()
+            out = 0 + r if out is None else out + r  # Python's sum, from 0
+        return _nonempty(out)
 
     def to_sparse(self) -> torch.Tensor:
         """``sum_t lambda_t A_t`` assembled."""
-        out = None
+        out: torch.Tensor | None = None
         for lam, t in self.terms:
             a = t.to_sparse() * lam
             out = a if out is None else out + a
-        return out.coalesce()
+        return _nonempty(out).coalesce()
+
+
+def _nonempty(total: torch.Tensor | None) -> torch.Tensor:
+    """The sum over the terms (a :class:`SumQuadratic` has at least one)."""
+    if total is None:
+        raise ShapeError("SumQuadratic needs at least one term with a non-zero weight")
+    return total

@@ -27,7 +27,8 @@ def sparse_gram(d: torch.Tensor) -> torch.Tensor:
     with warnings.catch_warnings():
         # torch routes sparse @ sparse through CSR and warns that CSR is "beta"
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-        return torch.sparse.mm(d.t().coalesce(), d).coalesce()
+        gram: torch.Tensor = torch.sparse.mm(d.t().coalesce(), d).coalesce()
+        return gram
 
 
 class QuadraticTerm:

@@ -15,8 +15,10 @@ pixels keep only the data term; the solver then returns ``ρ`` there.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Literal, overload
 
 import torch
 
@@ -30,7 +32,14 @@ from torchiid.priors.affinity import (
     pair_affinity,
     stencil_affinity,
 )
-from torchiid.priors.l1_terms import BregmanStats, L1Term, PairL1Term, data_term
+from torchiid.priors.l1_terms import (
+    BregmanStats,
+    L1Term,
+    MeasuredStep,
+    PairL1Term,
+    Step,
+    data_term,
+)
 from torchiid.priors.stencil import Stencil, shift_slices
 
 __all__ = [
@@ -158,7 +167,7 @@ class StencilL1Term(L1Term):
         """``Mᵀ diag(v) y``: ``(B, C, K, H, W) -> (B, C, H, W)``."""
         return self.stencil.adjoint(self.weights.unsqueeze(1) * y)
 
-    def _loop(self):
+    def _loop(self) -> Iterator[tuple[int, tuple[slice, slice, slice, slice]]]:
         h, w = self.stencil.height, self.stencil.width
         for k, (dy, dx) in enumerate(self.stencil.offsets):
             yield k, shift_slices(dy, dx, h, w)
@@ -208,15 +217,40 @@ class StencilL1Term(L1Term):
         """Diagonal of ``Mᵀ diag(v²) M`` (the weighted degree), ``(B, 1, H, W)``."""
         return self._degree
 
+    @overload
+    def bregman_step(
+        self,
+        z: torch.Tensor,
+        b: torch.Tensor | _Replay | None,
+        lam: float,
+        with_l1: bool = ...,
+        *,
+        final: bool = ...,
+        stats: Literal[False] = ...,
+    ) -> Step: ...
+
+    @overload
+    def bregman_step(
+        self,
+        z: torch.Tensor,
+        b: torch.Tensor | _Replay | None,
+        lam: float,
+        with_l1: bool = ...,
+        *,
+        final: bool = ...,
+        stats: Literal[True],
+    ) -> MeasuredStep: ...
+
     def bregman_step(
         self,
         z: torch.Tensor,
         b: torch.Tensor | _Replay | None,
         lam: float,
         with_l1: bool = True,
+        *,
         final: bool = False,
         stats: bool = False,
-    ):
+    ) -> Step | MeasuredStep:
         """Fused per-offset version of :meth:`L1Term.bregman_step` (``b`` updated in place).
 
         The differences of each offset are written into one scratch buffer, so the loop
@@ -234,67 +268,71 @@ class StencilL1Term(L1Term):
         pair's variable from them, in the torch path's operations and order. Up to
         :data:`REPLAY_STEPS` earlier updates are replayed; a longer solve (or a call that
         needs the torch path) stores the state from then on. At the ``default`` preset's two
-        updates per solve this saves writing and reading 141 MB per alternation at 512×384
-        (measured: 18–19 ms per update against 26–28 ms).
+        updates per solve this saves writing and reading ``C·K`` planes per alternation.
 
         Stored state. Otherwise, on the same compiled path, the update reads and writes the
         stored state in one pass (:func:`~torchiid.priors.kernels.bregman_update`; the torch
         ops, kept for GPUs, autograd and ``with_l1=True``, make about ten per offset). A
-        ``torch.int16`` state (see the class notes) halves what that pass moves: 19.0 ms
-        against 26.2 ms per update at 512×384 on 2 threads.
+        ``torch.int16`` state (see the class notes) halves what that pass moves.
 
         ``stats=True`` also returns the update's :class:`BregmanStats` (a fourth item), from
         the same pass on the compiled path (``kernels.bregman_update(stats=True)``).
         """
-        replayable = (
-            not self.keep_state
-            and self.replay
-            and not with_l1
-            and not stats
-            and (b is None or isinstance(b, _Replay))
-            and z.shape[0] == self.weights.shape[0]
-            and kernels.usable(z, self.weights, offsets=self.stencil.offsets)
-        )
-        if replayable:
-            history = [] if b is None else b.history
-            if len(history) <= REPLAY_STEPS and (b is None or b.lam == lam):
-                self.state_written = False
-                rhs = kernels.bregman_replay(history, z, self.weights, self.stencil.offsets, lam)
-                if final:
-                    return b, rhs, None
-                return _Replay([*history, z.clone()], lam), rhs, None
+        same_batch = z.shape[0] == self.weights.shape[0]
         compiled = (
             not with_l1
-            and z.shape[0] == self.weights.shape[0]
+            and same_batch
             and kernels.usable(z, self.weights, offsets=self.stencil.offsets)
         )
+        if compiled and not self.keep_state and self.replay and not stats:
+            replayed = self._replayed_step(z, b, lam, final)
+            if replayed is not None:
+                return replayed
         if isinstance(b, _Replay):
             b = self._materialise(b, compiled)
         state_ok = b is None or (
             b.is_contiguous()
             and (kernels.usable(z, b) or (b.dtype == torch.int16 and b.device.type == "cpu"))
         )
-        if compiled and state_ok:
-            # the stored state in one compiled pass (the torch path makes ~10 per offset)
-            store = not (final and not self.keep_state)
-            self.state_written = store
-            fresh = b is None
-            if store and fresh:
-                b = self._state_storage(z)
-            out = kernels.bregman_update(
-                z, self.weights, self.stencil.offsets, lam, state=b, read=not fresh,
-                write=store, state_step=self.state_step or 1.0, stats=stats,
-            )  # fmt: skip
-            if store and b.dtype == torch.int16:
-                self.state_step = kernels.fixed_point_scales(lam)[0]
-            if not stats:
-                return b, out, None
-            rhs, adj, sums = out
-            sums = sums.to(z.dtype).unbind(1)
-            return b, rhs, sums[0], BregmanStats(sums[0], sums[1], sums[2], sums[3], adj)
-        return self._torch_step(z, b, lam, with_l1, final, stats=stats)
+        if not (compiled and state_ok):
+            step = self._torch_step(z, b, lam, (with_l1, final), stats=stats)
+            return step[:3] if step[3] is None else (step[0], step[1], step[3].l1, step[3])
+        # the stored state in one compiled pass (the torch path makes ~10 per offset)
+        store = not (final and not self.keep_state)
+        self.state_written = store
+        fresh = b is None
+        if store and fresh:
+            b = self._state_storage(z)
+        out = kernels.bregman_update(
+            z, self.weights, self.stencil.offsets, lam, state=b, read=not fresh,
+            write=store, state_step=self.state_step or 1.0, stats=stats,
+        )  # fmt: skip
+        if store and b is not None and b.dtype == torch.int16:
+            self.state_step = kernels.fixed_point_scales(lam)[0]
+        if isinstance(out, torch.Tensor):
+            return b, out, None
+        rhs, adj, sums = out
+        s = sums.to(z.dtype).unbind(1)
+        return b, rhs, s[0], BregmanStats(s[0], s[1], s[2], s[3], adj)
 
-    def rescale_state(self, b, lam: float, new_lam: float):
+    def _replayed_step(
+        self, z: torch.Tensor, b: torch.Tensor | _Replay | None, lam: float, final: bool
+    ) -> Step | None:
+        """The update of a state kept as its history, or ``None`` where it has to be stored."""
+        if isinstance(b, torch.Tensor):
+            return None
+        history = [] if b is None else b.history
+        if len(history) > REPLAY_STEPS or (b is not None and b.lam != lam):
+            return None
+        self.state_written = False
+        rhs = kernels.bregman_replay(history, z, self.weights, self.stencil.offsets, lam)
+        if final:
+            return b, rhs, None
+        return _Replay([*history, z.clone()], lam), rhs, None
+
+    def rescale_state(
+        self, b: torch.Tensor | _Replay | None, lam: float, new_lam: float
+    ) -> torch.Tensor | None:
         """:meth:`L1Term.rescale_state`; an int16 state only changes its step (no pass)."""
         if isinstance(b, _Replay):
             compiled = kernels.usable(b.history[-1], self.weights, offsets=self.stencil.offsets)
@@ -310,9 +348,9 @@ class StencilL1Term(L1Term):
         bsz, c, h, w = z.shape
         shape = (bsz, c, self.stencil.num_offsets, h, w)
         st = self.state
-        fits = st is not None and st.shape == shape and st.device == z.device
-        if fits and st.dtype in (z.dtype, torch.int16):
-            return st
+        if st is not None and st.shape == shape and st.device == z.device:
+            if st.dtype in (z.dtype, torch.int16):
+                return st
         return z.new_empty(shape)
 
     def _materialise(self, replay: _Replay, compiled: bool) -> torch.Tensor:
@@ -330,7 +368,9 @@ class StencilL1Term(L1Term):
             return storage
         b = None
         for zs in replay.history:
-            b, _, _ = self._torch_step(zs, b, replay.lam, False, False, float_state=fixed)
+            b = self._torch_step(zs, b, replay.lam, (False, False), float_state=fixed)[0]
+        if b is None:  # the loop stores every update: never
+            raise RuntimeError("a replayed Bregman state without updates")
         if fixed:
             storage.copy_(b.mul_(kernels.fixed_point_scales(replay.lam)[1]).round_())
             return storage
@@ -341,27 +381,33 @@ class StencilL1Term(L1Term):
         z: torch.Tensor,
         b: torch.Tensor | None,
         lam: float,
-        with_l1: bool,
-        final: bool,
+        flags: tuple[bool, bool],
         float_state: bool = False,
         stats: bool = False,
-    ):
+    ) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor | None, BregmanStats | None]:
+        """The update in torch ops; ``flags``: ``(with_l1, final)``.
+
+        Returns the state, the right-hand side, ``‖W M z‖₁`` and the stats (``None`` unless
+        asked for).
+        """
+        with_l1, final = flags
         rhs = torch.zeros_like(z)
         scratch = torch.empty_like(z)
         l1 = z.new_zeros(z.shape[0]) if with_l1 or stats else None
-        if stats:
-            sums = z.new_zeros(3, z.shape[0])  # ‖b' − b‖², ‖W M z‖², ‖d‖²
-            adj = torch.zeros_like(z)
-        fresh = b is None
+        sums = z.new_zeros(3 if stats else 0, z.shape[0])  # ‖b' − b‖², ‖W M z‖², ‖d‖²
+        adj = torch.zeros_like(z) if stats else None
+        prior = b  # the state the update reads (None: the zero state)
         store = not (final and not self.keep_state)
         self.state_written = store
-        if fresh and store:
+        if b is None and store:
             b = z.new_empty(self.init_state(z).shape) if float_state else self._state_storage(z)
-        fixed = b is not None and b.dtype == torch.int16
-        step_in = self.state_step
-        step_out, inv_out = kernels.fixed_point_scales(lam) if fixed else (None, None)
-        if not store or fixed:
-            clamped = torch.empty_like(z)
+        dest = b if store else None  # where the new state goes
+        scales = (
+            kernels.fixed_point_scales(lam) if b is not None and b.dtype == torch.int16 else None
+        )
+        step_in = self.state_step or 1.0
+        # the clamped values where they are not written into the state (else unused)
+        clamped = torch.empty_like(z) if dest is None or scales is not None else scratch
         for k, (yi, xi, yj, xj) in self._loop():
             wk = self.weights[:, k : k + 1, yi, xi]
             u = torch.sub(z[:, :, yi, xi], z[:, :, yj, xj], out=scratch[:, :, yi, xi]).mul_(wk)
@@ -370,31 +416,35 @@ class StencilL1Term(L1Term):
             if stats:
                 sums[1] += _sums(u.square())
             old = None
-            if not fresh:
-                bk = b[:, :, k, yi, xi]
-                old = bk.to(z.dtype).mul_(step_in) if fixed else bk
+            if prior is not None:
+                bk = prior[:, :, k, yi, xi]
+                old = bk.to(z.dtype).mul_(step_in) if scales is not None else bk
                 if stats and old is bk:
                     old = bk.clone()  # the new b overwrites it
                 u += old
             # the new b, written straight into the state (or into scratch when not kept or
             # stored in fixed point)
-            bk = b[:, :, k, yi, xi] if store and not fixed else clamped[:, :, yi, xi]
+            bk = (
+                dest[:, :, k, yi, xi]
+                if dest is not None and scales is None
+                else clamped[:, :, yi, xi]
+            )
             torch.clamp(u, -lam, lam, out=bk)
-            if stats:
+            if adj is not None:
                 sums[0] += _sums(bk.square() if old is None else (bk - old).square_())
                 sums[2] += _sums((u - bk).square_())
                 adj[:, :, yi, xi].addcmul_(bk, wk)
                 adj[:, :, yj, xj].addcmul_(bk, wk, value=-1)
-            if store and fixed:
-                b[:, :, k, yi, xi] = bk.mul(inv_out).round_()
+            if dest is not None and scales is not None:
+                dest[:, :, k, yi, xi] = bk.mul(scales[1]).round_()
             e = u.sub_(bk, alpha=2.0)  # d - b; (W M)^T scatters w * (d - b) to i and j
             rhs[:, :, yi, xi].addcmul_(e, wk)
             rhs[:, :, yj, xj].addcmul_(e, wk, value=-1)
-        if store and fixed:
-            self.state_step = step_out
-        if stats:
-            return b, rhs, l1, BregmanStats(l1, sums[0], sums[1], sums[2], adj)
-        return b, rhs, l1
+        if dest is not None and scales is not None:
+            self.state_step = scales[0]
+        if adj is None or l1 is None:
+            return b, rhs, l1, None
+        return b, rhs, l1, BregmanStats(l1, sums[0], sums[1], sums[2], adj)
 
     def matrix(self) -> torch.Tensor:
         """``diag(v) M`` as sparse COO ``(B·P, B·H·W)`` acting on one channel."""

@@ -109,7 +109,8 @@ class ConstraintQuadratic(QuadraticTerm):
         if self.device.type == "cpu":
             return self.add_matvec(x, torch.zeros_like(x))
         mx = torch.sparse.mm(self.matrix, x.reshape(-1, 1))
-        return torch.sparse.mm(self.matrix_t, self.row_weights.view(-1, 1) * mx).view(self.shape)
+        out: torch.Tensor = torch.sparse.mm(self.matrix_t, self.row_weights.view(-1, 1) * mx)
+        return out.view(self.shape)
 
     def add_matvec(self, x: torch.Tensor, out: torch.Tensor, alpha: float = 1.0) -> torch.Tensor:
         """``out += alpha · M^T W M x`` (in place, returns ``out``).
@@ -146,7 +147,8 @@ class ConstraintQuadratic(QuadraticTerm):
         if self.target is None:
             return super().rhs()
         wc = (self.row_weights * self.target).view(-1, 1)
-        return torch.sparse.mm(self.matrix_t, wc).view(self.shape)
+        out: torch.Tensor = torch.sparse.mm(self.matrix_t, wc)
+        return out.view(self.shape)
 
     def to_sparse(self) -> torch.Tensor:
         """``M^T W M`` assembled."""
@@ -171,7 +173,8 @@ class DiagonalQuadratic(QuadraticTerm):
             raise ShapeError(f"expected weights (B, 1, H, W), got {tuple(weights.shape)}")
         self.weights = weights
         self.target = target
-        self.shape = tuple(weights.shape)
+        b, _, h, w = weights.shape
+        self.shape = (b, 1, h, w)
         self.dtype = weights.dtype
         self.device = weights.device
 

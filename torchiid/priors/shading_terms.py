@@ -239,7 +239,7 @@ def edge_confidence(
         if t_e > 0:
             chrom = _unit_chromaticity(image, dark_eps)
             chrom_pad = F.pad(chrom, (1, 1, 1, 1), mode="replicate")
-        if t_d > 0:
+        if t_d > 0 and logp is not None:
             logp_pad = F.pad(logp, (1, 1, 1, 1), mode="replicate")
         inside = None if mask is None else F.pad(mask.to(image.dtype), (1, 1, 1, 1))
         for dy in range(3):
@@ -250,12 +250,12 @@ def edge_confidence(
                 d = torch.zeros_like(e)
                 if chrom is not None:
                     d = (1 - (chrom * chrom_pad[win]).sum(1, keepdim=True)) / t_e
-                if t_d > 0:
+                if t_d > 0 and logp is not None:
                     d = torch.maximum(d, (logp - logp_pad[win]).abs() / t_d)
                 if inside is not None:
                     d = d * inside[win]
                 e = torch.maximum(e, d)
-    if t_h > 0:
+    if t_h > 0 and logp is not None:
         e = torch.maximum(e, _stroke_height(logp, mask) / t_h)
     return torch.exp(-(e**2))
 

@@ -84,7 +84,7 @@ class AMGPreconditioner(CSRPreconditioner):
     def apply(self, r: torch.Tensor) -> torch.Tensor:
         """``M^{-1} r`` for ``r`` ``(B, 1, H, W)`` (CPU)."""
         self._check(r)
-        rn = r.detach().cpu().numpy().reshape(-1).astype(self.dtype)
+        rn: np.ndarray = r.detach().cpu().numpy().reshape(-1).astype(self.dtype)
         z = self._m @ rn
         return torch.from_numpy(np.asarray(z)).to(dtype=r.dtype, device=r.device).view(r.shape)
 

@@ -52,7 +52,7 @@ def lanczos_lmax(
     t = torch.diag_embed(a)
     if off is not None:
         t = t + torch.diag_embed(off, offset=1) + torch.diag_embed(off, offset=-1)
-    lam = torch.linalg.eigvalsh(t)[:, -1]
+    lam: torch.Tensor = torch.linalg.eigvalsh(t)[:, -1]
     return lam.to(dtype=dinv.dtype, device=dinv.device).view(-1, 1, 1, 1)
 
 

@@ -278,12 +278,12 @@ def _iterate(
     """
     rhs, obj = start
     bsz, c, h, w = z.shape
-    like = {"dtype": z.dtype, "device": z.device}
+    rho = sp.rho
     objective = [obj] if obj is not None else None
-    outer = torch.zeros(bsz, dtype=torch.long, device=z.device)
-    change = torch.zeros(bsz, **like)
-    cg_res = torch.zeros(bsz, **like)
-    active = torch.ones(bsz, dtype=torch.bool, device=z.device)
+    outer = torch.zeros(bsz, dtype=torch.long, device=rho.device)
+    change = rho.new_zeros(bsz)
+    cg_res = rho.new_zeros(bsz)
+    active = torch.ones(bsz, dtype=torch.bool, device=rho.device)
     precond = sp.preconditioner()
     solve = functools.partial(
         pcg, tol=o.cg_tol, max_iter=o.cg_max_iter, warn=False, true_residual=False
@@ -343,7 +343,7 @@ def _iterate(
         change=change,
         converged=converged,
         cg_residual=cg_res,
-        gap=gap.value if gap is not None else torch.full((bsz,), float("nan"), **like),
+        gap=gap.value if gap is not None else rho.new_full((bsz,), float("nan")),
         theta=sp.theta,
-        distance=gap.distance if gap is not None else torch.full((bsz,), float("nan"), **like),
+        distance=gap.distance if gap is not None else rho.new_full((bsz,), float("nan")),
     )

@@ -52,7 +52,7 @@ class Splitting:
         # None: the zero state; a term's initial_state (e.g. the previous alternation's)
         # warm-starts
         self.states: list[Any] = [getattr(t, "initial_state", None) for t, _ in self.terms]
-        self._degree: Any = None  # Σ_k diag(M_kᵀ W_k² M_k), once needed
+        self._degree: torch.Tensor | None = None  # Σ_k diag(M_kᵀ W_k² M_k), once needed
 
     def bregman(
         self, z: torch.Tensor, final: bool, stats: bool
@@ -92,9 +92,9 @@ class Splitting:
         """The ``z`` step's operator on ``(B C, 1, H, W)`` (one system per channel)."""
         bsz, c, h, w = self.rho.shape
         xi = x.view(bsz, c, h, w)
-        out = None
+        out: torch.Tensor | None = None
         for t, _ in self.terms:
-            y = t.normal_matvec(xi)  # a fresh tensor: accumulate in place
+            y: torch.Tensor = t.normal_matvec(xi)  # a fresh tensor: accumulate in place
             out = y if out is None else out.add_(y)
         if out is None:
             raise ValueError("the z step needs at least one L1 term")
@@ -105,7 +105,7 @@ class Splitting:
         bsz, c, h, w = self.rho.shape
         if self._degree is None:
             self._degree = sum(t.normal_diagonal() for t, _ in self.terms)
-        diag = 2.0 * self.gamma_a + self.theta * self._degree
+        diag: torch.Tensor = 2.0 * self.gamma_a + self.theta * self._degree
         return (1.0 / diag).expand(bsz, c, h, w).reshape(bsz * c, 1, h, w)
 
     def retune(self, theta: float, g_adj: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
