@@ -51,7 +51,7 @@ def _unit_chromaticity(image: torch.Tensor, dark_eps: float) -> torch.Tensor:
     """``I / ‖I‖`` per pixel (channels floored at ``dark_eps``), ``(B, 3, H, W)``.
 
     The norm as a sum of squares: ``Tensor.norm(dim=1)`` over the channel axis takes a slow
-    strided path (12.5 ms against 0.14 ms at 512×384).
+    strided path.
     """
     chrom = image.clamp_min(dark_eps)
     return chrom / chrom.square().sum(dim=1, keepdim=True).sqrt()

@@ -164,8 +164,8 @@ def _options(options: SplitBregmanOptions | None, legacy: dict[str, Any]) -> Spl
         raise TypeError(f"split_bregman() got an unexpected keyword argument {unknown[0]!r}")
     names = ", ".join(f"{k}=..." for k in sorted(legacy))
     warnings.warn(
-        f"split_bregman({names}) is deprecated; pass "
-        f"split_bregman(..., options=SplitBregmanOptions({names}))",
+        f"split_bregman({names}) is deprecated; pass split_bregman(..., "
+        f"options=SplitBregmanOptions({names})), from torchiid.solvers.split_bregman",
         DeprecationWarning,
         stacklevel=3,
     )
