@@ -16,7 +16,6 @@ one channel), the canonical reference the fast paths are tested against.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, overload
 
 import torch
 
@@ -88,28 +87,6 @@ class L1Term:
     def l1(self, z: torch.Tensor) -> torch.Tensor:
         """``‖W M z‖₁`` per image, shape ``(B,)``."""
         return self.apply(z).abs().flatten(1).sum(dim=1)
-
-    @overload
-    def bregman_step(
-        self,
-        z: torch.Tensor,
-        b: torch.Tensor | None,
-        lam: float,
-        with_l1: bool = ...,
-        *,
-        stats: Literal[False] = ...,
-    ) -> Step: ...
-
-    @overload
-    def bregman_step(
-        self,
-        z: torch.Tensor,
-        b: torch.Tensor | None,
-        lam: float,
-        with_l1: bool = ...,
-        *,
-        stats: Literal[True],
-    ) -> MeasuredStep: ...
 
     def bregman_step(
         self,

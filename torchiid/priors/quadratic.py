@@ -13,7 +13,7 @@ unknowns, flat index ``b * H * W + y * W + x``.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 
@@ -253,18 +253,18 @@ class SumQuadratic(QuadraticTerm):
 
     def diagonal(self) -> torch.Tensor:
         """``sum_t lambda_t diag(A_t)``."""
-        out: torch.Tensor | None = None
-        for lam, t in self.terms:
-            d = lam * t.diagonal()
-            out = 0 + d if out is None else out + d  # Python's sum, from 0
-        return _nonempty(out)
+        return self._weighted(lambda t: t.diagonal())
 
     def rhs(self) -> torch.Tensor:
         """``sum_t lambda_t b_t``."""
+        return self._weighted(lambda t: t.rhs())
+
+    def _weighted(self, part: Callable[[QuadraticTerm], torch.Tensor]) -> torch.Tensor:
+        """``sum_t lambda_t part(t)``, summed as Python's ``sum`` does (from 0)."""
         out: torch.Tensor | None = None
         for lam, t in self.terms:
-            r = lam * t.rhs()
-            out = 0 + r if out is None else out + r  # Python's sum, from 0
+            v = lam * part(t)
+            out = 0 + v if out is None else out + v
         return _nonempty(out)
 
     def to_sparse(self) -> torch.Tensor:

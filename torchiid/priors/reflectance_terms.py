@@ -18,7 +18,6 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Literal, overload
 
 import torch
 
@@ -216,30 +215,6 @@ class StencilL1Term(L1Term):
     def normal_diagonal(self) -> torch.Tensor:
         """Diagonal of ``Mᵀ diag(v²) M`` (the weighted degree), ``(B, 1, H, W)``."""
         return self._degree
-
-    @overload
-    def bregman_step(
-        self,
-        z: torch.Tensor,
-        b: torch.Tensor | _Replay | None,
-        lam: float,
-        with_l1: bool = ...,
-        *,
-        final: bool = ...,
-        stats: Literal[False] = ...,
-    ) -> Step: ...
-
-    @overload
-    def bregman_step(
-        self,
-        z: torch.Tensor,
-        b: torch.Tensor | _Replay | None,
-        lam: float,
-        with_l1: bool = ...,
-        *,
-        final: bool = ...,
-        stats: Literal[True],
-    ) -> MeasuredStep: ...
 
     def bregman_step(
         self,
