@@ -15,14 +15,10 @@ import operator
 from collections.abc import Iterable
 from dataclasses import dataclass
 from functools import reduce
-from typing import TYPE_CHECKING
 
 import torch
 
 from torchiid.solvers.splitting import Measured, Splitting
-
-if TYPE_CHECKING:
-    from torchiid.solvers.split_bregman import SplitBregmanOptions
 
 __all__ = ["GAP_FLOOR", "Gap", "measure_gap", "next_check", "balance"]
 
@@ -47,6 +43,8 @@ class Gap:
     """The duality gap of a solve, per image, and when to measure it next.
 
     Attributes:
+        tol: the gap at which an image stops.
+        check_every: the most iterations between two measurements.
         value: ``(B,)`` the last measured relative gap (``nan``: none yet).
         distance: ``(B,)`` the certified bound on ``‖z − z*‖ / ‖ρ‖`` of that measurement.
         energy0: ``(B,)`` the data's energy ``J(0) = γ_a ‖ρ‖²``.
@@ -54,6 +52,8 @@ class Gap:
         previous: the last measurement ``(iteration, gaps)``.
     """
 
+    tol: float
+    check_every: int
     value: torch.Tensor
     distance: torch.Tensor
     energy0: torch.Tensor
@@ -61,11 +61,12 @@ class Gap:
     previous: tuple[int, torch.Tensor] | None = None
 
     @classmethod
-    def unmeasured(cls, rho: torch.Tensor, gamma_a: float, check_every: int) -> Gap:
+    def unmeasured(cls, rho: torch.Tensor, gamma_a: float, tol: float, check_every: int) -> Gap:
         """No measurement yet; the first one after ``check_every`` iterations."""
         value = torch.full((rho.shape[0],), float("nan"), dtype=rho.dtype, device=rho.device)
         energy0 = gamma_a * _sums(rho.square())
-        return cls(value, torch.full_like(value, float("nan")), energy0, check_every)
+        nan = torch.full_like(value, float("nan"))
+        return cls(tol, check_every, value, nan, energy0, check_every)
 
 
 def measure_gap(
@@ -76,14 +77,14 @@ def measure_gap(
     measured: Measured,
     active: torch.Tensor,
     iteration: int,
-    o: SplitBregmanOptions,
+    balancing: tuple[tuple[float, float], tuple[float, float]] | None,
 ) -> tuple[torch.Tensor, bool]:
     """Measure the gap at ``z`` from the update's stats (``gap`` updated), balance ``θ``.
 
-    ``iteration``: 1-based. Returns the next ``z`` step's right-hand side (changed when ``θ``
-    changes) and whether ``θ`` changed.
+    ``iteration``: 1-based. ``balancing``: ``(theta_range, ratios)`` of :func:`balance`, or
+    ``None`` for a fixed ``θ``. Returns the next ``z`` step's right-hand side (changed when
+    ``θ`` changes) and whether ``θ`` changed.
     """
-    gap_tol = o.gap_tol if o.gap_tol is not None else 0.0
     rho, gamma_a, tiny = sp.rho, sp.gamma_a, torch.finfo(sp.rho.dtype).tiny
     g_adj = sp.theta * _total(m.adjoint for _, m in measured)
     primal_obj = gamma_a * _sums((z - rho).square()) + _total(g * m.l1 for g, m in measured)
@@ -95,7 +96,7 @@ def measure_gap(
     now = (primal_obj - dual_obj) / scale
     gap.value = torch.where(active, now, gap.value)
     gap.next_check = iteration + next_check(
-        now, gap.previous, iteration, active, gap_tol, o.check_every
+        now, gap.previous, iteration, active, gap.tol, gap.check_every
     )
     gap.previous = (iteration, now)
     # strong convexity: γ_a ‖z − z*‖² <= J(z) − J(z*) <= J(z) − D(p), relative to ‖ρ‖:
@@ -105,10 +106,10 @@ def measure_gap(
     gap.distance = torch.where(active, dist, gap.distance)
     if logger.isEnabledFor(logging.DEBUG):
         logger.debug("split-bregman: iteration %d, duality gap %s", iteration, now.tolist())
-    if o.theta_range is None:
+    if balancing is None:
         return rhs, False
-    residuals = _residuals(sp, z, g_adj, measured, active & (now >= gap_tol))
-    theta = balance(residuals, sp.theta, o.theta_range, o.balance)
+    residuals = _residuals(sp, z, g_adj, measured, active & (now >= gap.tol))
+    theta = balance(residuals, sp.theta, *balancing)
     if theta == sp.theta:
         return rhs, False
     # keep the multipliers θ b: b ← b θ_old / θ_new, and the z step's right-hand side

@@ -248,7 +248,9 @@ def split_bregman(
     if not active_terms:
         # no L1 term: the minimiser is rho itself
         return _unsplit(rho, obj, o.theta)
-    gap = Gap.unmeasured(rho, gamma_a, o.check_every) if gap_mode else None
+    gap = None
+    if gap_mode and o.gap_tol is not None:
+        gap = Gap.unmeasured(rho, gamma_a, o.gap_tol, o.check_every)
     return _iterate(sp, z, (rhs, obj), o, gap)
 
 
@@ -314,25 +316,26 @@ def _iterate(
         else:
             rhs, obj_new, measured = sp.bregman(z, it == o.max_outer - 2, check)
             if check and gap is not None:
-                rhs, retuned = measure_gap(sp, gap, z, rhs, measured, active, it + 1, o)
+                balancing = None if o.theta_range is None else (o.theta_range, o.balance)
+                rhs, retuned = measure_gap(sp, gap, z, rhs, measured, active, it + 1, balancing)
                 if retuned:
                     precond = sp.preconditioner()
                     last = None
         if objective is not None and obj is not None and obj_new is not None:
             obj = torch.where(active, obj_new, obj)
             objective.append(obj)
-        if gap is not None and o.gap_tol is not None:
+        if gap is not None:
             if check:
-                active = active & ~(gap.value < o.gap_tol)  # a NaN gap runs on to the cap
+                active = active & ~(gap.value < gap.tol)  # a NaN gap runs on to the cap
         else:
             active = active & (change >= o.tol)
         if logger.isEnabledFor(logging.DEBUG):
             logger.debug("split-bregman: iteration %d, relative change %s", it + 1, change.tolist())
         if not bool(active.any()):
             break
-    if gap is not None and o.gap_tol is not None:
+    if gap is not None:
         # without a measured gap (no update was measured), the change rule tells
-        converged = torch.where(gap.value.isnan(), change < o.tol, gap.value < o.gap_tol)
+        converged = torch.where(gap.value.isnan(), change < o.tol, gap.value < gap.tol)
     else:
         converged = change < o.tol
     return SplitBregmanResult(
