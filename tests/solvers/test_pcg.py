@@ -1,8 +1,9 @@
+import numpy as np
 import pytest
 import torch
 
 from torchiid.core.exceptions import ConvergenceWarning, ImageError, ShapeError
-from torchiid.solvers.pcg import pcg
+from torchiid.solvers.pcg import pcg, pcg_callable
 
 
 def _spd(n, seed, cond=100.0):
@@ -180,3 +181,36 @@ def test_known_start_residual_saves_a_product_and_gives_the_same_iterates():
     torch.testing.assert_close(reused.x, fresh.x, rtol=1e-10, atol=1e-12)
     with pytest.raises(ShapeError, match="r0"):
         pcg(counted, b2, r0=torch.zeros(2, 19, dtype=torch.float64))
+
+
+def test_pcg_callable_history_and_snapshots():
+    g = torch.Generator().manual_seed(5)
+    q, _ = torch.linalg.qr(torch.randn(30, 30, generator=g, dtype=torch.float64))
+    a = q @ torch.diag(torch.logspace(0, 3, 30, dtype=torch.float64)) @ q.T
+    b = torch.randn(1, 30, generator=g, dtype=torch.float64)
+    res = pcg_callable(lambda x: x @ a, b, tol=1e-10, max_iter=200, snapshot_tols=(1e-3,))
+    assert res.converged
+    torch.testing.assert_close(res.x[0], torch.linalg.solve(a, b[0]), rtol=1e-8, atol=1e-8)
+    assert res.history.shape == (res.iterations + 1, 1)
+    assert float(res.history[0, 0]) == pytest.approx(1.0)
+    k = res.iterations_to(1e-3)
+    assert 0 < k <= res.iterations
+    snap = res.snapshots[1e-3]
+    assert float(torch.linalg.norm(b - snap @ a) / torch.linalg.norm(b)) <= 1.01e-3
+    assert np.isfinite(float(res.residual))
+
+
+def test_pcg_callable_runs_the_iteration_of_pcg():
+    # a batch whose items stop at different iterations: the same iterates and counts as pcg,
+    # and each item's recorded residual stays where it stopped
+    g = torch.Generator().manual_seed(6)
+    q, _ = torch.linalg.qr(torch.randn(40, 40, generator=g, dtype=torch.float64))
+    a = q @ torch.diag(torch.logspace(0, 2, 40, dtype=torch.float64)) @ q.T
+    b = torch.randn(2, 40, generator=g, dtype=torch.float64)
+    b[1] = q[:, 0] + 1e-3 * b[1]  # nearly an eigenvector: converges in a few iterations
+    diag = (1 / a.diagonal()).expand(2, 40)
+    res = pcg_callable(lambda x: x @ a, b, precond=diag, tol=1e-9, max_iter=100)
+    ref = pcg(lambda x: x @ a, b, precond=diag, tol=1e-9, max_iter=100)
+    assert torch.equal(res.x, ref.x) and torch.equal(res.item_iterations, ref.item_iterations)
+    stop = int(res.item_iterations[1])
+    assert stop < res.iterations and bool((res.history[stop:, 1] == res.history[stop, 1]).all())

@@ -5,9 +5,17 @@ import torch
 from torchiid.core.exceptions import ImageError, ParameterError, ShapeError
 from torchiid.priors.reflectance_terms import PairL1Term, StencilL1Term
 from torchiid.priors.stencil import Stencil
-from torchiid.solvers.split_bregman import split_bregman
+from torchiid.solvers.split_bregman import SplitBregmanOptions, split_bregman
 
 D = torch.float64
+
+
+def solve(rho, terms, gammas, gamma_a=1.0, z0=None, **options):
+    """split_bregman with its settings as keywords (gathered into SplitBregmanOptions)."""
+    o = SplitBregmanOptions(**options)
+    return split_bregman(rho, terms, gammas, gamma_a=gamma_a, z0=z0, options=o)
+
+
 TIGHT = dict(max_outer=2000, tol=1e-12, cg_tol=1e-13, cg_max_iter=100)
 
 
@@ -26,7 +34,7 @@ def test_matches_brute_force_grid_1d():
     i, j = torch.tensor([[0, 1, 0]]), torch.tensor([[1, 2, 2]])
     w = torch.tensor([[1.0, 0.8, 0.3]], dtype=D)
     term = PairL1Term(i, j, w, 1, 3)
-    res = split_bregman(rho, [term], [0.1], gamma_a=1.0, theta=1.0, **TIGHT)
+    res = solve(rho, [term], [0.1], gamma_a=1.0, theta=1.0, **TIGHT)
     grid = torch.arange(0.0, 0.8001, 0.005, dtype=D)
     z = torch.stack(torch.meshgrid(grid, grid, grid, indexing="ij"), -1).reshape(-1, 3)
     r = rho.reshape(3)
@@ -55,7 +63,7 @@ def test_matches_primal_dual_reference_4x4():
         w,
     )
     gam = [0.3, 0.2]
-    res = split_bregman(rho, [a, c], gam, gamma_a=1.0, theta=10.0, **TIGHT)
+    res = solve(rho, [a, c], gam, gamma_a=1.0, theta=10.0, **TIGHT)
     # Chambolle-Pock primal-dual on dense matrices, float64
     mats = [a.matrix().to_dense(), c.matrix().to_dense()]
     k = torch.cat(mats)
@@ -94,9 +102,7 @@ def _problem(b=2, h=12, w=13, seed=0, dtype=torch.float32):
 
 def test_objective_decreases_overall():
     rho, term = _problem(b=1, dtype=D)
-    res = split_bregman(
-        rho, [term], [0.05], gamma_a=1.0, theta=1.0, max_outer=30, tol=0, cg_max_iter=20
-    )
+    res = solve(rho, [term], [0.05], gamma_a=1.0, theta=1.0, max_outer=30, tol=0, cg_max_iter=20)
     obj = res.objective[:, 0]
     assert obj.shape[0] == 31
     assert float(obj[-1]) < 0.8 * float(obj[0])
@@ -107,8 +113,8 @@ def test_objective_decreases_overall():
 def test_untracked_objective_gives_the_same_solution():
     rho, term = _problem(b=2, dtype=D)
     kw = dict(gamma_a=1.0, theta=2.0, max_outer=5, tol=0, cg_max_iter=7)
-    tracked = split_bregman(rho, [term], [0.05], **kw)
-    fast = split_bregman(rho, [term], [0.05], track_objective=False, **kw)
+    tracked = solve(rho, [term], [0.05], **kw)
+    fast = solve(rho, [term], [0.05], track_objective=False, **kw)
     assert fast.objective is None and tracked.objective.shape == (6, 2)
     torch.testing.assert_close(fast.z, tracked.z)
     assert fast.outer_iterations.tolist() == tracked.outer_iterations.tolist()
@@ -118,11 +124,11 @@ def test_batch_equals_one_by_one_and_per_image_stopping():
     rho, term = _problem(b=2)
     rho[1] = 0.5  # constant image: z = rho is optimal, stops after one iteration
     kw = dict(gamma_a=1.0, theta=2.0, max_outer=6, tol=1e-4, cg_max_iter=7)
-    res = split_bregman(rho, [term], [0.05], **kw)
+    res = solve(rho, [term], [0.05], **kw)
     assert res.outer_iterations.tolist() == [6, 1]
     for bi in range(2):
         one = StencilL1Term(term.stencil, term.weights[bi : bi + 1])
-        r1 = split_bregman(rho[bi : bi + 1], [one], [0.05], **kw)
+        r1 = solve(rho[bi : bi + 1], [one], [0.05], **kw)
         torch.testing.assert_close(res.z[bi : bi + 1], r1.z, atol=1e-5, rtol=1e-5)
         assert int(r1.outer_iterations[0]) == int(res.outer_iterations[bi])
 
@@ -130,37 +136,52 @@ def test_batch_equals_one_by_one_and_per_image_stopping():
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_dtype_and_no_terms(dtype):
     rho, term = _problem(b=1, dtype=dtype)
-    res = split_bregman(rho, [term], [0.05], max_outer=2)
+    res = solve(rho, [term], [0.05], max_outer=2)
     assert res.z.dtype == dtype and res.z.shape == rho.shape
-    res0 = split_bregman(rho, [term], [0.0])
+    res0 = solve(rho, [term], [0.0])
     assert torch.equal(res0.z, rho) and res0.cg_iterations == 0
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_matches_cpu():
     rho, term = _problem(b=1, dtype=D)
-    cpu = split_bregman(rho, [term], [0.05], max_outer=3)
+    cpu = solve(rho, [term], [0.05], max_outer=3)
     gterm = StencilL1Term(Stencil.square(12, 13, 5, device="cuda"), term.weights.cuda())
-    gpu = split_bregman(rho.cuda(), [gterm], [0.05], max_outer=3)
+    gpu = solve(rho.cuda(), [gterm], [0.05], max_outer=3)
     torch.testing.assert_close(gpu.z.cpu(), cpu.z)
 
 
 def test_errors():
     rho, term = _problem(b=1)
     with pytest.raises(ParameterError, match="got 1 terms but 2 weights"):
-        split_bregman(rho, [term], [1.0, 2.0])
+        solve(rho, [term], [1.0, 2.0])
     with pytest.raises(ParameterError, match="gamma_a and theta must be > 0"):
-        split_bregman(rho, [term], [1.0], gamma_a=0.0)
+        solve(rho, [term], [1.0], gamma_a=0.0)
     with pytest.raises(ParameterError, match=">= 0"):
-        split_bregman(rho, [term], [-1.0])
+        solve(rho, [term], [-1.0])
     with pytest.raises(ShapeError, match=r"z0 has shape \(1, 3, 4, 4\)"):
-        split_bregman(rho, [term], [1.0], z0=torch.zeros(1, 3, 4, 4))
+        solve(rho, [term], [1.0], z0=torch.zeros(1, 3, 4, 4))
     bad = rho.clone()
     bad[0, 0, 0, 0] = float("nan")
     with pytest.raises(ImageError, match="rho contains 1 NaN"):
-        split_bregman(bad, [term], [1.0])
+        solve(bad, [term], [1.0])
     with pytest.raises(ShapeError, match=r"expected rho of shape \(B, C, H, W\)"):
-        split_bregman(rho[0], [term], [1.0])
+        solve(rho[0], [term], [1.0])
+
+
+def test_the_flat_keywords_still_work_with_a_deprecation_warning():
+    rho, term = _problem(b=1)
+    with pytest.warns(DeprecationWarning, match=r"options=SplitBregmanOptions\(max_outer=.*theta="):
+        old = split_bregman(rho, [term], [0.05], theta=2.0, max_outer=3)
+    new = solve(rho, [term], [0.05], theta=2.0, max_outer=3)
+    assert torch.equal(old.z, new.z) and old.theta == new.theta == 2.0
+    # over given options, the keywords win
+    with pytest.warns(DeprecationWarning):
+        both = split_bregman(rho, [term], [0.05], options=SplitBregmanOptions(theta=9.0), theta=2.0,
+                             max_outer=3)  # fmt: skip
+    assert torch.equal(both.z, new.z)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'thetta'"):
+        split_bregman(rho, [term], [0.05], thetta=2.0)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -176,14 +197,14 @@ def test_unstored_and_replayed_states_give_the_stored_state_iterates(dtype, max_
 
     rho, term = _problem(b=2, h=23, w=19, dtype=dtype)
     kw = dict(gamma_a=1.0, theta=2.0, max_outer=max_outer, tol=0, cg_max_iter=4)
-    stored = split_bregman(rho, [term], [0.05], track_objective=False, **kw)
+    stored = solve(rho, [term], [0.05], track_objective=False, **kw)
     assert term.state_written
     lean = StencilL1Term(term.stencil, term.weights, keep_state=False)
     calls = []
     real = kernels.bregman_replay
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(kernels, "bregman_replay", lambda h, *a: calls.append(len(h)) or real(h, *a))
-        res = split_bregman(rho, [lean], [0.05], track_objective=False, **kw)
+        res = solve(rho, [lean], [0.05], track_objective=False, **kw)
     tol = 2e-5 if dtype == torch.float32 else 1e-11
     torch.testing.assert_close(res.z, stored.z, rtol=tol, atol=tol)
     if kernels._numba() is not None:
@@ -199,13 +220,13 @@ def test_a_term_told_not_to_replay_stores_its_state():
 
     rho, term = _problem(b=1, h=15, w=17)
     kw = dict(gamma_a=1.0, theta=2.0, max_outer=6, tol=0, cg_max_iter=4)
-    stored = split_bregman(rho, [term], [0.05], track_objective=False, **kw)
+    stored = solve(rho, [term], [0.05], track_objective=False, **kw)
     lean = StencilL1Term(term.stencil, term.weights, keep_state=False, replay=False)
     calls = []
     real = kernels.bregman_replay
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(kernels, "bregman_replay", lambda h, *a: calls.append(len(h)) or real(h, *a))
-        res = split_bregman(rho, [lean], [0.05], track_objective=False, **kw)
+        res = solve(rho, [lean], [0.05], track_objective=False, **kw)
     assert calls == []
     torch.testing.assert_close(res.z, stored.z, rtol=2e-5, atol=2e-5)
 
@@ -233,12 +254,12 @@ def _excess(res, rho, terms, gammas, j_star):
 def test_duality_gap_bounds_the_excess_and_stops_the_solve():
     rho, terms, gam = _gap_problem()
     mats = [t.matrix().to_dense() for t in terms]
-    ref = split_bregman(rho, terms, gam, gamma_a=1.0, theta=1.0, **{**TIGHT, "max_outer": 600})
+    ref = solve(rho, terms, gam, gamma_a=1.0, theta=1.0, **{**TIGHT, "max_outer": 600})
     j_star = float(_objective(ref.z, rho, mats, gam, 1.0))
     kw = dict(gamma_a=1.0, theta=1.0, max_outer=3000, cg_tol=1e-10, cg_max_iter=100)
     iterations = []
     for tol in (1e-1, 1e-2, 1e-3):
-        res = split_bregman(rho, terms, gam, gap_tol=tol, check_every=1, **kw)
+        res = solve(rho, terms, gam, gap_tol=tol, check_every=1, **kw)
         excess = _excess(res, rho, terms, gam, j_star)
         gap = float(res.gap[0])
         assert bool(res.converged.all()) and gap < tol
@@ -257,16 +278,16 @@ def test_residual_balancing_lowers_a_too_large_penalty(fixed):
     # the minimum, certified by the gap (which the test above checks against TIGHT)
     exact = _gap_problem()[1]
     mats = [t.matrix().to_dense() for t in exact]
-    ref = split_bregman(
+    ref = solve(
         rho.double(), exact, gam, gamma_a=1.0, theta=1.0, gap_tol=1e-6, check_every=1,
         max_outer=3000, cg_tol=1e-12, cg_max_iter=100,
     )  # fmt: skip
     assert bool(ref.converged.all())
     j_star = float(_objective(ref.z, rho.double(), mats, gam, 1.0))
-    plain = split_bregman(rho, terms, gam, theta=theta, **kw)
+    plain = solve(rho, terms, gam, theta=theta, **kw)
     storage = torch.empty(1, 3, terms[0].stencil.num_offsets, 14, 15, dtype=torch.int16)
     rho, terms, gam = _gap_problem(dtype=dtype, state=storage if fixed else None)
-    balanced = split_bregman(rho, terms, gam, theta=theta, theta_range=(theta / 64, theta), **kw)
+    balanced = solve(rho, terms, gam, theta=theta, theta_range=(theta / 64, theta), **kw)
     assert bool(plain.converged.all()) and bool(balanced.converged.all())
     assert theta / 64 <= balanced.theta < theta
     # (measured: 45 iterations against 515)
@@ -289,64 +310,20 @@ def test_gap_rule_falls_back_to_the_change_without_measuring_terms():
             return getattr(self.inner, name)
 
     kw = dict(gamma_a=1.0, theta=1.0, max_outer=500, tol=1e-4, cg_max_iter=30)
-    res = split_bregman(rho, [Opaque(terms[0]), terms[1]], gam, gap_tol=1e-3, **kw)
-    ref = split_bregman(rho, terms, gam, **kw)
+    res = solve(rho, [Opaque(terms[0]), terms[1]], gam, gap_tol=1e-3, **kw)
+    ref = solve(rho, terms, gam, **kw)
     assert bool(res.gap.isnan().all()) and bool(res.converged.all())
     torch.testing.assert_close(res.z, ref.z)
     assert res.outer_iterations.tolist() == ref.outer_iterations.tolist()
     # a solve shorter than check_every still measures its gap, at its last update
-    short = split_bregman(rho, terms, gam, gap_tol=1e-3, max_outer=2, gamma_a=1.0, theta=1.0)
+    short = solve(rho, terms, gam, gap_tol=1e-3, max_outer=2, gamma_a=1.0, theta=1.0)
     assert bool(short.gap.isfinite().all()) and not bool(short.converged.any())
     with pytest.raises(ParameterError, match="balance"):
-        split_bregman(rho, terms, gam, gap_tol=1e-3, balance=(1.0, 10.0))
+        solve(rho, terms, gam, gap_tol=1e-3, balance=(1.0, 10.0))
     with pytest.raises(ParameterError, match="gap_tol"):
-        split_bregman(rho, terms, gam, gap_tol=0.0)
+        solve(rho, terms, gam, gap_tol=0.0)
     with pytest.raises(ParameterError, match="theta_range"):
-        split_bregman(rho, terms, gam, theta=1.0, gap_tol=1e-3, theta_range=(2.0, 4.0))
-
-
-@pytest.mark.parametrize("fixed", [False, True], ids=["float32", "int16"])
-def test_a_change_of_penalty_keeps_the_multipliers_and_the_next_right_hand_side(fixed):
-    # after b' = clamp(W M z + b) at θ, moving to θ' must leave the z step's right-hand side
-    # equal to its definition 2γ_a ρ + θ' Σ (W M)ᵀ (d − b θ/θ'), d = W M z + b − b'
-    from torchiid.solvers.split_bregman import change_penalty
-
-    storage = torch.empty(1, 3, 12, 14, 15, dtype=torch.int16) if fixed else None
-    rho, terms, gam = _gap_problem(dtype=torch.float32, state=storage)
-    assert terms[0].stencil.num_offsets == 12
-    g = torch.Generator().manual_seed(9)
-    z = torch.rand(rho.shape, generator=g)
-    ga, theta, theta2 = 1.0, 2.0, 0.5
-    lams = [gg / theta for gg in gam]
-    new_lams = [gg / theta2 for gg in gam]
-    # states after a first update, then the measured second update
-    states = [t.bregman_step(torch.rand(rho.shape, generator=g), None, lam, False)[0]
-              for t, lam in zip(terms, lams, strict=True)]  # fmt: skip
-
-    def decoded(n):
-        b = states[n]
-        return b.float() * terms[0].state_step if b.dtype == torch.int16 else b.clone()
-
-    before = [decoded(n) for n in range(2)]
-    rhs = 2 * ga * rho
-    adjoint = torch.zeros_like(rho)
-    for n, (t, lam) in enumerate(zip(terms, lams, strict=True)):
-        states[n], r, _, m = t.bregman_step(z, states[n], lam, False, stats=True)
-        rhs += theta * r
-        adjoint += theta * m.adjoint
-    after = [decoded(n) for n in range(2)]
-    active = list(zip(terms, gam, strict=True))
-    new = change_penalty(rhs.clone(), 2 * ga * rho, adjoint, states, active, lams, new_lams, 0.25)
-    expect = 2 * ga * rho
-    for n, t in enumerate(terms):
-        rescaled = decoded(n)
-        valid = torch.isfinite(rescaled) & (after[n].abs() <= lams[n] * 1.0001)
-        scaled = torch.where(valid, after[n] * theta / theta2, 0.0)
-        assert torch.allclose(torch.where(valid, rescaled, 0.0), scaled, atol=new_lams[n] / 30000)
-        wz = t.apply(z)
-        d = wz + torch.where(valid, before[n], 0.0) - torch.where(valid, after[n], 0.0)
-        expect = expect + theta2 * t.adjoint(torch.where(valid, d, 0.0) - scaled)
-    assert torch.allclose(new, expect, atol=2e-3 * float(expect.abs().max()))
+        solve(rho, terms, gam, theta=1.0, gap_tol=1e-3, theta_range=(2.0, 4.0))
 
 
 @pytest.mark.parametrize("scale", [1.0, 10.0])
@@ -358,46 +335,18 @@ def test_certified_distance_bounds_the_distance_to_the_minimiser(scale):
     rho = rho * scale
     gam = [4 * g for g in gam]
     kw = dict(gamma_a=4.0, theta=4.0, max_outer=5000, cg_tol=1e-10, cg_max_iter=100)
-    ref = split_bregman(rho, terms, gam, gap_tol=1e-7, check_every=1, **kw)
+    ref = solve(rho, terms, gam, gap_tol=1e-7, check_every=1, **kw)
     d_ref = float(ref.distance[0])
     assert d_ref < 1e-3
     norm = float(rho.norm())
     for tol in (1e-1, 1e-2, 1e-3):
-        res = split_bregman(rho, terms, gam, gap_tol=tol, check_every=1, **kw)
+        res = solve(rho, terms, gam, gap_tol=tol, check_every=1, **kw)
         true = float((res.z - ref.z).norm()) / norm
         bound = float(res.distance[0])
         assert true <= bound + d_ref
         if tol == 1e-1:
             # and not a loose one here (measured: 0.141 against 0.124)
             assert bound <= 1.5 * true
-
-
-def test_next_measurement_of_the_gap_comes_where_its_rate_predicts():
-    from torchiid.solvers.split_bregman import _next_check
-
-    on = torch.tensor([True, True])
-    # no earlier measurement: the full interval
-    assert _next_check(torch.tensor([0.1, 0.2]), None, 5, on, 1e-3, 5) == 5
-    # halving per iteration from 0.08 (iteration 5) to 0.02 (iteration 7): 0.02 -> 0.005 in
-    # 2 more; the first image to get there decides
-    before, now = torch.tensor([0.08, 0.8]), torch.tensor([0.02, 0.2])
-    assert _next_check(now, (5, before), 7, on, 0.005, 5) == 2
-    # at least one iteration, at most check_every
-    assert _next_check(torch.tensor([0.0051, 1.0]), (6, torch.tensor([0.01, 1.0])), 7, on,
-                       0.005, 5) == 1  # fmt: skip
-    assert _next_check(torch.tensor([0.9, 0.9]), (5, torch.tensor([0.91, 0.91])), 10, on,
-                       0.005, 5) == 5  # fmt: skip
-    # a gap that grew, or images that stopped, give no rate
-    assert _next_check(now, (5, now * 0.5), 7, on, 0.005, 5) == 5
-    assert _next_check(now, (5, before), 7, torch.tensor([False, False]), 0.005, 5) == 5
-    # an image already below the tolerance, or frozen, does not set the schedule: the other
-    # one, quartering per iteration from 0.2, needs 3 more iterations to get below 0.005
-    now, before = torch.tensor([0.004, 0.2]), torch.tensor([0.008, 3.2])
-    assert _next_check(now, (5, before), 7, on, 0.005, 5) == 3
-    fast = torch.tensor([0.0051, 0.2])  # 1 more iteration, but it has stopped
-    slow = (5, torch.tensor([0.0102, 3.2]))
-    assert _next_check(fast, slow, 7, torch.tensor([False, True]), 0.005, 5) == 3
-    assert _next_check(fast, slow, 7, on, 0.005, 5) == 1
 
 
 def test_adaptive_measurements_stop_near_the_first_iteration_below_the_tolerance():
@@ -414,12 +363,12 @@ def test_adaptive_measurements_stop_near_the_first_iteration_below_the_tolerance
         return real(self, *a, stats=stats, **k)
 
     for tol in (1e-2, 1e-3):
-        every = split_bregman(rho, terms, gam, gap_tol=tol, check_every=1, **kw)
+        every = solve(rho, terms, gam, gap_tol=tol, check_every=1, **kw)
         first = int(every.outer_iterations[0])
         measured.clear()
         with pytest.MonkeyPatch.context() as mp:
             mp.setattr(StencilL1Term, "bregman_step", counting)
-            res = split_bregman(rho, terms, gam, gap_tol=tol, check_every=5, **kw)
+            res = solve(rho, terms, gam, gap_tol=tol, check_every=5, **kw)
         n = int(res.outer_iterations[0])
         assert bool(res.converged.all()) and float(res.gap[0]) < tol
         assert first <= n <= first + 1, (first, n)

@@ -332,9 +332,10 @@ def test_a_warm_solve_starts_at_the_penalty_its_state_was_written_at(monkeypatch
     real = stage.split_bregman
 
     def spy(*args, **kw):
-        assert kw["theta_range"] == (base * params.reflectance.bregman_theta_floor, base)
+        options = kw["options"]
+        assert options.theta_range == (base * params.reflectance.bregman_theta_floor, base)
         res = real(*args, **kw)
-        calls.append((kw["theta"], res.theta))
+        calls.append((options.theta, res.theta))
         return res
 
     monkeypatch.setattr(stage, "split_bregman", spy)

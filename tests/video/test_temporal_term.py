@@ -5,7 +5,7 @@ from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.eval.lmse import mit_lmse
 from torchiid.model import decompose
 from torchiid.params import Parameters
-from torchiid.solvers.split_bregman import split_bregman
+from torchiid.solvers.split_bregman import SplitBregmanOptions, split_bregman
 from torchiid.stages import ReflectanceProblem, TemporalPrior, solve_reflectance
 from torchiid.stages.reflectance import TemporalAnchorTerm, TemporalL1Term
 from torchiid.synthetic import mondrian
@@ -27,8 +27,8 @@ def test_anchor_term_is_the_exact_weighted_average():
     rho, target, conf = data()
     gamma = 4.0 * GA * S
     term = TemporalAnchorTerm(target, conf, 2 * gamma / THETA)
-    res = split_bregman(rho, [term], [gamma], gamma_a=GA * S, theta=THETA, max_outer=2,
-                        cg_max_iter=50, cg_tol=1e-10, tol=0.0)  # fmt: skip
+    o = SplitBregmanOptions(theta=THETA, max_outer=2, cg_max_iter=50, cg_tol=1e-10, tol=0.0)
+    res = split_bregman(rho, [term], [gamma], gamma_a=GA * S, options=o)
     expected = (GA * S * rho + gamma * conf * target) / (GA * S + gamma * conf)
     assert torch.allclose(res.z, expected, atol=1e-5)
 
@@ -38,8 +38,8 @@ def test_l1_term_converges_to_its_proximal_solution():
     gamma = 0.2 * GA * S
     term = TemporalL1Term(target, conf)
     # (a smaller penalty than the pipeline's converges in fewer Bregman iterations)
-    res = split_bregman(rho, [term], [gamma], gamma_a=GA * S, theta=4 * S, max_outer=40,
-                        cg_max_iter=20, cg_tol=1e-10, tol=1e-9)  # fmt: skip
+    o = SplitBregmanOptions(theta=4 * S, max_outer=40, cg_max_iter=20, cg_tol=1e-10, tol=1e-9)
+    res = split_bregman(rho, [term], [gamma], gamma_a=GA * S, options=o)
     # 1-D prox of gamma*c*|z - T| + GA*S*(z - rho)^2: snap to T within gamma*c / (2*GA*S)
     d = rho - target
     thr = gamma * conf / (2 * GA * S)

@@ -34,7 +34,7 @@ class InputKey:
         for it in items:
             if isinstance(it, torch.Tensor):
                 version = object() if it.is_inference() else it._version
-                parts.append(_TensorPart(it, version, tuple(it.stride()), it.storage_offset()))
+                parts.append(_TensorPart(it, version, tuple(it.stride()), int(it.storage_offset())))
             else:
                 parts.append(it)
         self._parts = tuple(parts)

@@ -130,6 +130,7 @@ def decode_lut(depth: int, linear: bool = False) -> np.ndarray:
 @functools.cache
 def _decode_lut(depth: int, linear: bool) -> np.ndarray:
     n = 1 << depth
+    lut: np.ndarray
     if linear:
         lut = np.arange(n, dtype=np.float32) / np.float32(n - 1)
     else:
@@ -150,6 +151,6 @@ def srgb8_encode_lut() -> np.ndarray:
     ((65536,), dtype('uint8'), 0, 255)
     """
     x = np.arange(65536, dtype=np.float64) / 65535
-    lut = np.clip(np.rint(linear_to_srgb_np(x) * 255), 0, 255).astype(np.uint8)
+    lut: np.ndarray = np.clip(np.rint(linear_to_srgb_np(x) * 255), 0, 255).astype(np.uint8)
     lut.flags.writeable = False
     return lut

@@ -50,13 +50,13 @@ def undo_malloc_trim_threshold() -> bool:
     except (OSError, AttributeError):  # not glibc
         return False
     ok = mallopt(_M_MMAP_THRESHOLD, 32 * 1024 * 1024) == 1
-    return ok and mallopt(_M_TRIM_THRESHOLD, 128 * 1024 * 1024) == 1
+    return ok and bool(mallopt(_M_TRIM_THRESHOLD, 128 * 1024 * 1024) == 1)
 
 
 def available_memory(
-    meminfo: str | os.PathLike = "/proc/meminfo",
-    cgroup: str | os.PathLike = "/proc/self/cgroup",
-    cgroup_root: str | os.PathLike = "/sys/fs/cgroup",
+    meminfo: str | os.PathLike[str] = "/proc/meminfo",
+    cgroup: str | os.PathLike[str] = "/proc/self/cgroup",
+    cgroup_root: str | os.PathLike[str] = "/sys/fs/cgroup",
 ) -> int | None:
     """Bytes of memory this process can still take before the system or its container runs out.
 
@@ -111,7 +111,7 @@ def memory_limit(gigabytes: str | float | None = None) -> int | None:
     return None if value == 0 else int(value * 1e9)
 
 
-def _read_text(path: str | os.PathLike) -> str | None:
+def _read_text(path: str | os.PathLike[str]) -> str | None:
     """The file's text, or ``None`` if it cannot be read (undecodable bytes are replaced)."""
     try:
         with open(path, encoding="ascii", errors="replace") as fh:
@@ -120,7 +120,7 @@ def _read_text(path: str | os.PathLike) -> str | None:
         return None
 
 
-def _read_int(path: str | os.PathLike) -> int | None:
+def _read_int(path: str | os.PathLike[str]) -> int | None:
     """A cgroup limit or usage file: an integer, ``max`` (no limit), else ``None``."""
     text = _read_text(path)
     if text is None:
@@ -134,7 +134,7 @@ def _read_int(path: str | os.PathLike) -> int | None:
         return None
 
 
-def _key_values(path: str | os.PathLike, separator: str = " ") -> dict[str, int]:
+def _key_values(path: str | os.PathLike[str], separator: str = " ") -> dict[str, int]:
     """``name value`` lines (``memory.stat``; ``/proc/meminfo`` with ``:``) as a dict."""
     out: dict[str, int] = {}
     for line in (_read_text(path) or "").splitlines():
@@ -151,15 +151,19 @@ def _key_values(path: str | os.PathLike, separator: str = " ") -> dict[str, int]
 #: per cgroup version: the limit files (the lowest counts), the usage file, and the
 #: ``memory.stat`` keys of the reclaimable file cache in order of preference (v1's
 #: ``total_inactive_file`` covers the group's children, as its usage does)
-_V2 = (("memory.max", "memory.high"), "memory.current", ("inactive_file",))
-_V1 = (
+_V2: tuple[tuple[str, ...], str, tuple[str, ...]] = (
+    ("memory.max", "memory.high"),
+    "memory.current",
+    ("inactive_file",),
+)
+_V1: tuple[tuple[str, ...], str, tuple[str, ...]] = (
     ("memory.limit_in_bytes",),
     "memory.usage_in_bytes",
     ("total_inactive_file", "inactive_file"),
 )
 
 
-def _cgroup_left(cgroup: str | os.PathLike, root: str | os.PathLike) -> int | None:
+def _cgroup_left(cgroup: str | os.PathLike[str], root: str | os.PathLike[str]) -> int | None:
     """The least memory left under the limits of the process's memory cgroup and its ancestors.
 
     Per limited group: its limit less its usage without the file cache it can reclaim.

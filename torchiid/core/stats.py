@@ -63,7 +63,7 @@ def _quantile(v: torch.Tensor, q: float, interpolation: str) -> torch.Tensor:
     """``torch.quantile(v, q, interpolation=...)`` of a 1-D tensor by selection, not sorting.
 
     The one or two order statistics the quantile needs come from ``torch.kthvalue`` (linear
-    time; 15 ms against 98 ms for ``torch.quantile``'s sort of 0.6 M values), at the ranks
+    time, where ``torch.quantile`` sorts every value), at the ranks
     ``torch.quantile`` computes (``q (n − 1)`` in ``v``'s dtype, then floor, ceil or round)
     and combined as it does (``lerp``), so the value is the same. NaN values, other devices
     and ``q`` outside [0, 1] go to ``torch.quantile`` itself.

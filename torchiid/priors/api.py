@@ -139,7 +139,8 @@ class ShadingPrior:
     @property
     def shape(self) -> tuple[int, int, int, int]:
         """The unknown's shape ``(B, 1, H, W)``."""
-        return tuple(self.term.shape)
+        b, c, h, w = self.term.shape
+        return (b, c, h, w)
 
     def matvec(self, s: torch.Tensor) -> torch.Tensor:
         """``L s`` (matrix-free, the solver's product), ``(B, 1, H, W)``."""

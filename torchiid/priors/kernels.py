@@ -9,41 +9,39 @@ the rows it reads are in cache (``python tools/bench_kernels.py`` prints the com
 
 The kernel sums the pairs in difference form, ``Σ w (x_i − x_j)``, where the torch ops use
 ``deg ⊙ x − Σ w x_j``: the same operator, but it annihilates constants exactly and keeps its
-round-off relative to the differences rather than to the values. That matters for the
-``converged`` preset's float32 shading solves, which sit at the edge of what float32 resolves:
-with the ``deg`` form in the kernel, chelsea's second shading solve broke down after 2
-iterations (and was redone in float64, 1.2 s); with the difference form it converges in 14
-float32 iterations, as with the torch ops.
+round-off relative to the differences rather than to the values. That matters for float32
+shading solves at the edge of what float32 resolves (the ``converged`` preset's), which the
+``deg`` form can make break down.
 
 The same one-pass kernels build the reflectance stage's 60-offset colour weights and the
-matting Laplacian's stencil (once per alternation each).
-
-Threads: as many as torch uses (``torch.get_num_threads()``). The stencil product runs on
-numba's thread pool, one call at a time (numba's fallback threading layer aborts on
-concurrent calls); the weight builders split the image's rows into bands and run them at
-once on a small Python thread pool (the kernels release the GIL). Small calls and one-thread
-processes run on the calling thread only. Each output element is computed by one thread in
-a fixed order, so the result does not depend on the number of threads.
-
-The kernels are used only where they apply (:func:`usable`): numba importable, CPU tensors of
-float32 or float64, and no autograd graph to record (the differentiable losses keep the torch
-ops). ``TORCHIID_KERNELS=torch`` in the environment turns them off, e.g. to compare the two
-paths. The first use in a Python environment compiles them (about 5 s, once: numba caches
-the machine code on disk for every later process).
+matting Laplacian's stencil (once per alternation each), and update the reflectance stage's
+Bregman variables (:mod:`torchiid.priors.bregman_pass`, whose names are importable from
+here). Where the kernels apply and on which threads they run:
+:mod:`torchiid.priors.kernel_runtime`.
 """
 
 from __future__ import annotations
 
-import logging
 import math
-import os
-import threading
-from concurrent.futures import ThreadPoolExecutor
-from functools import cache
 
 import torch
 
-from torchiid.core.exceptions import ParameterError, ShapeError
+from torchiid.priors import kernel_runtime
+from torchiid.priors.bregman_pass import (
+    bregman_replay,
+    bregman_update,
+    fixed_point_fits,
+    fixed_point_scales,
+)
+from torchiid.priors.kernel_runtime import (
+    bands,
+    compiled,
+    kernel_module,
+    offset_arrays,
+    parallel_lock,
+    run_bands,
+    usable,
+)
 
 __all__ = [
     "usable",
@@ -58,52 +56,8 @@ __all__ = [
     "matting_weights",
 ]
 
-logger = logging.getLogger(__name__)
-
-
-@cache
-def _numba():
-    """The compiled kernel, or ``None`` without numba (or with ``TORCHIID_KERNELS=torch``)."""
-    if os.environ.get("TORCHIID_KERNELS", "").lower() == "torch":
-        return None
-    try:
-        import numba
-    except ImportError:  # pragma: no cover - numba is a dependency; kept for slim installs
-        return None
-    try:
-        from torchiid.priors import stencil_kernels
-    except Exception as exc:  # pragma: no cover - e.g. no writable directory for numba's cache
-        logger.warning("compiled kernels unavailable (%s); using the torch ops", exc)
-        return None
-    return numba, stencil_kernels
-
-
-def usable(*tensors: torch.Tensor, offsets: list[tuple[int, int]] | None = None) -> bool:
-    """Whether the compiled kernels apply to these tensors (see the module notes).
-
-    With ``offsets``, also whether they are half offsets (``dy >= 0``), the only ones the
-    kernels handle (:func:`~torchiid.priors.stencil.half_offsets` gives such).
-    """
-    if _numba() is None:
-        return False
-    if offsets is not None and any(dy < 0 for dy, _ in offsets):
-        return False
-    dtype = tensors[0].dtype
-    if dtype not in (torch.float32, torch.float64):
-        return False
-    grad = torch.is_grad_enabled()
-    return all(
-        t.device.type == "cpu" and t.dtype == dtype and not (grad and t.requires_grad)
-        for t in tensors
-    )
-
-
-@cache
-def _offsets(offsets: tuple[tuple[int, int], ...]):
-    import numpy as np
-
-    arr = np.asarray(offsets, dtype=np.int64).reshape(-1, 2)
-    return np.ascontiguousarray(arr[:, 0]), np.ascontiguousarray(arr[:, 1])
+#: the compiled kernels or ``None`` (:func:`~torchiid.priors.kernel_runtime.compiled`)
+_numba = compiled
 
 
 def stencil_product(
@@ -141,9 +95,18 @@ def stencil_degree(
     return _gather(shape_only, weights, offsets, square, degree=True)
 
 
-def _gather(x, weights, offsets, square: bool, degree: bool) -> torch.Tensor:
-    numba, kernel = _numba()
-    dys, dxs = _offsets(tuple(offsets))
+def _gather(
+    x: torch.Tensor,
+    weights: torch.Tensor,
+    offsets: list[tuple[int, int]],
+    square: bool,
+    degree: bool,
+) -> torch.Tensor:
+    found = compiled()
+    if found is None:
+        raise RuntimeError("the compiled kernels are not available (see kernels.usable)")
+    numba, kernel = found
+    dys, dxs = offset_arrays(tuple(offsets))
     out = torch.empty_like(x)
     b, _, h, _ = x.shape
     args = (x.numpy(), weights.contiguous().numpy(), dys, dxs, out.numpy(), square, degree)
@@ -151,216 +114,11 @@ def _gather(x, weights, offsets, square: bool, degree: bool) -> torch.Tensor:
     if n <= 1:
         kernel.gather(*args, 0, b * h)
     else:  # numba's pool: a cheaper hand-off than bands for a sub-millisecond call
-        # one caller at a time: numba's fallback threading layer (workqueue, where neither
-        # OpenMP nor TBB is available) aborts the process on concurrent parallel calls
-        with _parallel_lock:
-            numba.set_num_threads(n if x.numel() * 2 * len(offsets) >= PARALLEL_WORK else 1)
+        with parallel_lock:
+            small = x.numel() * 2 * len(offsets) < kernel_runtime.PARALLEL_WORK
+            numba.set_num_threads(1 if small else n)
             kernel.gather_parallel(*args)
     return out
-
-
-#: below this many multiply-adds a call runs on the calling thread only: handing bands to
-#: the pool costs more than it saves
-PARALLEL_WORK = 1 << 21
-
-_parallel_lock = threading.Lock()
-_pool_lock = threading.Lock()
-_pool: tuple[int, int, ThreadPoolExecutor] | None = None  # (pid, workers, pool)
-
-
-def _executor(workers: int) -> ThreadPoolExecutor:
-    """The process's band pool with at least ``workers`` threads (a new one after a fork)."""
-    global _pool
-    with _pool_lock:
-        if _pool is None or _pool[0] != os.getpid() or _pool[1] < workers:
-            if _pool is not None and _pool[0] == os.getpid():
-                _pool[2].shutdown(wait=False)  # a smaller pool: let its threads end
-            _pool = (os.getpid(), workers, ThreadPoolExecutor(workers, "torchiid-kernel"))
-        return _pool[2]
-
-
-def _run(kernel, args: tuple, rows: int, work: int) -> None:
-    """``kernel(*args, r0, r1)`` over ``rows`` rows, in bands on torch's thread count."""
-    n = min(torch.get_num_threads(), rows)
-    if n <= 1 or work < PARALLEL_WORK:
-        kernel(*args, 0, rows)
-        return
-    cuts = [rows * i // n for i in range(n + 1)]
-    pool = _executor(n - 1)
-    futures = [pool.submit(kernel, *args, cuts[i], cuts[i + 1]) for i in range(1, n)]
-    kernel(*args, cuts[0], cuts[1])
-    for f in futures:
-        f.result()
-
-
-def bregman_replay(
-    history: list[torch.Tensor],
-    z: torch.Tensor,
-    weights: torch.Tensor,
-    offsets: list[tuple[int, int]],
-    lam: float,
-) -> torch.Tensor:
-    """The right-hand side of a ``StencilL1Term`` Bregman update, its state replayed.
-
-    ``Σ_k (W M)ᵀ (d_k − b_k)`` at ``z`` for a solve that started from the zero state and made
-    its earlier updates at the ``z`` in ``history`` (oldest first): each pair's Bregman
-    variable is recomputed from them instead of read from a stored ``(B, C, K, H, W)``
-    state (:func:`bregman_update` with a history and no state).
-
-    Shape:
-        history items and z ``(B, C, H, W)``, weights ``(B, K, H, W)`` -> ``(B, C, H, W)``.
-    """
-    return bregman_update(z, weights, offsets, lam, history=history)
-
-
-def bregman_update(
-    z: torch.Tensor,
-    weights: torch.Tensor,
-    offsets: list[tuple[int, int]],
-    lam: float,
-    *,
-    state: torch.Tensor | None = None,
-    read: bool = False,
-    write: bool = False,
-    history: list[torch.Tensor] | tuple[()] = (),
-    state_step: float = 1.0,
-    stats: bool = False,
-) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """A ``StencilL1Term`` Bregman update at ``z``: its right-hand side, ``state`` updated.
-
-    Every pair's Bregman variable starts from ``state`` (``read``) or from 0, is replayed
-    through the updates at the ``z`` in ``history`` (oldest first), is updated at ``z`` and
-    written back to ``state`` (``write``); returns ``Σ_k (W M)ᵀ (d_k − b_k)`` (see
-    ``stencil_kernels._bregman_update``). One pass over the state where the torch path makes
-    about ten per offset. The rows are cut into blocks of :data:`REPLAY_BLOCK_ROWS`, run in
-    runs of whole blocks on torch's thread count; each block's contributions to the rows
-    after it are added once all blocks are done, in block order, so the result does not
-    depend on the number of threads.
-
-    A ``torch.int16`` state holds the variable in 16-bit fixed point (see
-    :func:`fixed_point_scales`): it is read as ``q · state_step`` and written with the step
-    of ``lam``.
-
-    ``stats=True`` also measures the update (the kernel's measured mode: the same state and
-    right-hand side) and returns ``(rhs, adj, sums)``: ``adj = (W M)ᵀ b'`` ``(B, C, H, W)``
-    and per image ``(B, 4)`` float64 sums of ``|W M z|``, ``(b' − b)²``, ``(W M z)²`` and
-    ``d²``.
-
-    Shape:
-        z and history items ``(B, C, H, W)``, weights ``(B, K, H, W)``, state ``(B, C, K, H,
-        W)`` contiguous (``z``'s dtype or ``torch.int16``) -> ``(B, C, H, W)``.
-    """
-    import numpy as np
-
-    _, kernel = _numba()
-    dys, dxs = _offsets(tuple(offsets))
-    b, c, h, w = z.shape
-    if (read or write) and (
-        state is None or state.shape != (b, c, len(offsets), h, w) or not state.is_contiguous()
-    ):
-        raise ShapeError(
-            f"state must be a contiguous {(b, c, len(offsets), h, w)} tensor to read or write"
-        )
-    if state is not None and state.dtype not in (z.dtype, torch.int16):
-        raise ShapeError(f"state must be {z.dtype} or torch.int16, got {state.dtype}")
-    zs = torch.stack([*history, z]).contiguous()
-    rhs = torch.empty(b, c, h, w, dtype=z.dtype)
-    st = state if state is not None else torch.empty(0, 0, 0, 0, 0, dtype=z.dtype)
-    ftype = rhs.numpy().dtype.type
-    fixed = st.dtype == torch.int16
-    scale_in = ftype(state_step if fixed else 1.0)
-    inv_out = ftype(fixed_point_scales(lam)[1] if fixed else 0.0)
-    depth = max(1, int(dys.max()))
-    rows = b * h
-    block = REPLAY_BLOCK_ROWS
-    blocks = -(-rows // block)
-    n = min(torch.get_num_threads(), blocks)
-    work = rows * w * len(offsets) * c * (4 + 3 * len(history))
-    if n <= 1 or work < PARALLEL_WORK:
-        n = 1
-    cuts = [blocks * i // n for i in range(n + 1)]  # each thread: a run of whole blocks
-    dtype = rhs.numpy().dtype
-    halo = np.empty((blocks, depth, c, w), dtype=dtype)
-    # the measured update's outputs, or empty arrays (the kernel leaves them alone)
-    adj = torch.empty_like(rhs) if stats else torch.empty(0, 0, 0, 0, dtype=z.dtype)
-    halo2 = np.empty_like(halo) if stats else np.empty((0, 0, 0, 0), dtype=dtype)
-    sums = np.empty((blocks if stats else 0, b, 4), dtype=np.float64)
-    args = (
-        zs.numpy(),
-        weights.contiguous().numpy(),
-        dys,
-        dxs,
-        dtype.type(lam),
-        st.numpy(),
-        bool(read),
-        bool(write),
-        scale_in,
-        inv_out,
-        rhs.numpy(),
-        halo,
-        adj.numpy(),
-        halo2,
-        sums,
-        block,
-    )
-    fn = kernel.bregman_update
-    if n == 1:
-        fn(*args, 0, blocks)
-    else:
-        pool = _executor(n - 1)
-        futures = [pool.submit(fn, *args, cuts[i], cuts[i + 1]) for i in range(1, n)]
-        fn(*args, cuts[0], cuts[1])
-        for f in futures:
-            f.result()
-    kernel.add_halos(rhs.numpy(), halo, block)
-    if not stats:
-        return rhs
-    kernel.add_halos(adj.numpy(), halo2, block)
-    return rhs, adj, torch.from_numpy(sums.sum(axis=0))
-
-
-#: the largest magnitude of a 16-bit fixed-point Bregman variable: ``λ`` is stored as this
-STATE_LEVELS = 32767
-
-
-def fixed_point_scales(lam: float) -> tuple[float, float]:
-    """``(step, inverse)`` of a 16-bit fixed-point Bregman variable written at threshold ``λ``.
-
-    The variable lies in ``[−λ, λ]`` (it is clamped there), so it is stored as ``q =
-    rint(b · inverse)``, an integer in ``[−32767, 32767]``, and read back as ``q · step``: an
-    absolute error of at most ``λ / 65534``. Both are float32 numbers, so that the torch ops
-    and the compiled kernel compute the same values.
-    """
-    scales = _scales(lam)
-    if scales is None:
-        raise ParameterError(
-            f"Split-Bregman threshold λ = γ / θ = {lam!r} cannot be kept in a 16-bit state "
-            f"(its step λ / {STATE_LEVELS} is not a normal float32 number); keep such a "
-            "state in float32 instead (the pipeline does so by itself)"
-        )
-    return scales
-
-
-def fixed_point_fits(lam: float) -> bool:
-    """Whether a Bregman variable of threshold ``λ`` can be kept in 16-bit fixed point."""
-    return _scales(lam) is not None
-
-
-def _scales(lam: float) -> tuple[float, float] | None:
-    import numpy as np
-
-    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-        step = np.float32(lam / STATE_LEVELS) if lam > 0 else np.float32(0)
-        inverse = np.float32(STATE_LEVELS / lam) if lam > 0 else np.float32(np.inf)
-    tiny = np.finfo(np.float32).tiny
-    if not (step >= tiny and np.isfinite(step) and np.isfinite(inverse)):
-        return None
-    return float(step), float(inverse)
-
-
-#: rows per block of :func:`bregman_update` (fixed, so that the result does not depend on
-#: the thread count)
-REPLAY_BLOCK_ROWS = 32
 
 
 def matting_window_terms(
@@ -377,7 +135,7 @@ def matting_window_terms(
         ``(B, 11, H + 2, W + 2)`` float64: window ``(wy, wx)`` at ``(wy + 2, wx + 2)``, 0
         around (the layout of ``MattingQuadratic.as_stencil``'s torch ops).
     """
-    _, kernel = _numba()
+    kernel = kernel_module()
     b, _, h, w = image.shape
     qp = torch.empty(b, 11, h + 2, w + 2, dtype=torch.float64)
     qp[:, :, :2].zero_()  # the kernel writes every other entry (the window rows' borders too)
@@ -386,7 +144,8 @@ def matting_window_terms(
     if mask is not None:
         m = mask.to(torch.bool).contiguous()
     args = (image.contiguous().numpy(), m.numpy(), float(eps), qp.numpy())
-    _run(kernel.matting_windows, args, b * (h - 2), b * h * w * 120)
+    rows = b * (h - 2)
+    run_bands(kernel.matting_windows, args, bands(rows, b * h * w * 120))
     return qp
 
 
@@ -408,12 +167,12 @@ def matting_weights(
     Returns:
         ``(B, K, H, W)`` weights, 0 for pairs leaving the image.
     """
-    _, kernel = _numba()
-    dys, dxs = _offsets(tuple(offsets))
+    kernel = kernel_module()
+    dys, dxs = offset_arrays(tuple(offsets))
     b, _, h, w = image.shape
     out = torch.empty(b, len(offsets), h, w, dtype=dtype)
     args = (window_terms.contiguous().numpy(), image.contiguous().numpy(), dys, dxs, out.numpy())
-    _run(kernel.matting_weights, args, b * h, b * h * w * len(offsets) * 40)
+    run_bands(kernel.matting_weights, args, bands(b * h, b * h * w * len(offsets) * 40))
     return out
 
 
@@ -434,16 +193,15 @@ def stencil_affinity(
     ``mask``, or whose exponent ``scale · ‖f_i − f_j‖²`` is below ``min_exponent``, get 0. The
     kernel writes the exponents (one pass over the offsets, no zero fill first), torch's
     vectorised ``exp`` exponentiates them in place and a second kernel applies the factor:
-    about 3× faster than one ``exp`` call per pair in the kernel (measured at 512×384, stop
-    25). Into ``out`` when given (``(B, K, H, W)``, the features' dtype; a non-contiguous one
-    receives a copy).
+    about 3× faster than one ``exp`` call per pair in the kernel. Into ``out`` when given
+    (``(B, K, H, W)``, the features' dtype; a non-contiguous one receives a copy).
 
     Shape:
         features ``(B, D, H, W)``, semantic ``(B, K, H, W)``, mask ``(B, 1, H, W)`` bool ->
         ``(B, K, H, W)``.
     """
-    _, kernel = _numba()
-    dys, dxs = _offsets(tuple(offsets))
+    kernel = kernel_module()
+    dys, dxs = offset_arrays(tuple(offsets))
     b, d, h, w = features.shape
     dt = features.dtype
     given = out
@@ -465,12 +223,12 @@ def stencil_affinity(
         np_dt(min_exponent),
         out.numpy(),
     )
-    _run(kernel.affinity_exponent, args, b * h, b * h * w * len(offsets) * (d + 4))
+    run_bands(kernel.affinity_exponent, args, bands(b * h, b * h * w * len(offsets) * (d + 4)))
     out.exp_()  # torch's exp is vectorised (the kernel's would be libm's, one call per pair)
     if sem is not None:
         rows = b * len(offsets) * h
-        args = (out.view(rows, w).numpy(), sem.view(rows, w).numpy(), np_dt(a_l), np_dt(a_m))
-        _run(kernel.scale_by_factor, args, rows, rows * w * 2)
+        scaled = (out.view(rows, w).numpy(), sem.view(rows, w).numpy(), np_dt(a_l), np_dt(a_m))
+        run_bands(kernel.scale_by_factor, scaled, bands(rows, rows * w * 2))
     if given is not None and given is not out:
         return given.copy_(out)
     return out

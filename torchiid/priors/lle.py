@@ -194,6 +194,17 @@ class LLENeighbourhood:
             return valid is None and self.valid is None
         return valid.shape == self.valid.shape and bool(torch.equal(valid, self.valid))
 
+    def lookup(
+        self, key: InputKey, valid: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """The stored ``(index, ok, weights)`` when they are the ones for ``key`` and ``valid``."""
+        if not self.matches(key, valid):
+            return None
+        if self.index is None or self.ok is None or self.weights is None:
+            return None
+        self.hits += 1
+        return self.index, self.ok, self.weights
+
     def store(
         self,
         key: InputKey,
@@ -261,9 +272,9 @@ def lle_term(
         check_shape(mask, (b, 1, height, width), "mask")
         valid = torch.gather(mask.reshape(b, -1), 1, pix)
     key = input_key(features, k, reg, neighbours, seed)
-    if reuse is not None and reuse.matches(key, valid):
-        idx, ok, w = reuse.index, reuse.ok, reuse.weights
-        reuse.hits += 1
+    found = None if reuse is None else reuse.lookup(key, valid)
+    if found is not None:
+        idx, ok, w = found
     else:
         idx, ok = select_neighbours(features, k, neighbours, valid, seed)
         w = lle_weights(features, idx, ok, reg)

@@ -64,7 +64,7 @@ def _centred64(base: torch.Tensor) -> torch.Tensor:
     return i64 - i64.mean(dim=(2, 3), keepdim=True)
 
 
-def _compiled_stencil(qp: torch.Tensor, i64: torch.Tensor, dtype: torch.dtype):
+def _compiled_stencil(qp: torch.Tensor, i64: torch.Tensor, dtype: torch.dtype) -> StencilQuadratic:
     """The 5×5 stencil term from the window summands ``qp`` by the compiled weights pass."""
     _, _, h, w = i64.shape
     stencil = Stencil(h, w, half_offsets(5), device=i64.device)
@@ -211,8 +211,7 @@ class MattingQuadratic(QuadraticTerm):
 
         Args:
             band_rows: rows per band of the float64 computation (default: about 49k pixels a
-                band, 96 rows at 512 px width; measured 0.064 s against 0.098 s with 32 rows
-                at 512x384 on 2 threads). The result does not depend on it.
+                band, 96 rows at 512 px width). The result does not depend on it.
         """
         b, _, h, w = self.shape
         if band_rows is None:
@@ -315,8 +314,8 @@ def matting_stencil(
     What the shading stage uses. Where the compiled kernels apply
     (:func:`~torchiid.priors.kernels.usable`) the window statistics and the pair weights are
     computed in two passes over the image, without the float64 torch temporaries of
-    :class:`MattingQuadratic` (``python tools/bench_kernels.py``, 512×384, 2 threads: 26 ms
-    against 68 ms); otherwise it is exactly ``matting_laplacian(base, eps, mask).as_stencil()``.
+    :class:`MattingQuadratic` (``python tools/bench_kernels.py`` compares the two); otherwise it
+    is exactly ``matting_laplacian(base, eps, mask).as_stencil()``.
 
     Args:
         base: ``(B, 3, H, W)`` linear RGB base image (see :func:`matting_laplacian`).

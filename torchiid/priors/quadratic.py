@@ -2,10 +2,10 @@
 
 Every shading prior of the paper (Eq. 1-5) is a sum of squared, weighted linear residuals
 ``E(x) = sum_r w_r ((M x)_r - c_r)^2`` with a difference or constraint operator ``M``, so
-``A = M^T W M`` is symmetric positive semi-definite by construction and ``b = M^T W c``.
-A :class:`QuadraticTerm` offers what a conjugate-gradient solver needs -- :meth:`matvec`,
-:meth:`diagonal` (Jacobi), :meth:`rhs` -- plus :meth:`to_sparse`, the assembled torch sparse
-matrix ``A`` that serves as the canonical, tested reference of the fast products.
+``A = M^T W M`` is symmetric positive semi-definite by construction and ``b = M^T W c``
+(:class:`~torchiid.priors.quadratic_term.QuadraticTerm`). This module holds the stencil term
+:class:`StencilQuadratic` and the weighted sum :class:`SumQuadratic`; the terms over explicit
+rows (:mod:`torchiid.priors.row_quadratics`) and the base class are importable from here too.
 
 The unknown ``x`` is ``(B, 1, H, W)``; a batch is the block-diagonal system on ``B * H * W``
 unknowns, flat index ``b * H * W + y * W + x``.
@@ -13,16 +13,21 @@ unknowns, flat index ``b * H * W + y * W + x``.
 
 from __future__ import annotations
 
-import warnings
-from collections.abc import Sequence
-from functools import cached_property
+from collections.abc import Callable, Sequence
 
 import torch
 
 from torchiid.core.exceptions import ShapeError
 from torchiid.priors import kernels
-from torchiid.priors.pairs import PairSet
+from torchiid.priors.quadratic_term import QuadraticTerm, sparse_gram
+from torchiid.priors.row_quadratics import ConstraintQuadratic, DiagonalQuadratic, PairQuadratic
 from torchiid.priors.stencil import Stencil, shift_slices
+
+#: both directions of every pair: ``(slices, weight view)``, the weights ``(B, 2K, H, W)`` and
+#: the degree ``(B, 1, H, W)``
+_Directed = tuple[
+    list[tuple[tuple[slice, slice, slice, slice], torch.Tensor]], torch.Tensor, torch.Tensor
+]
 
 __all__ = [
     "QuadraticTerm",
@@ -33,50 +38,6 @@ __all__ = [
     "SumQuadratic",
     "sparse_gram",
 ]
-
-
-def sparse_gram(d: torch.Tensor) -> torch.Tensor:
-    """``D^T D`` of a sparse COO matrix ``D``, as a coalesced sparse COO matrix."""
-    with warnings.catch_warnings():
-        # torch routes sparse @ sparse through CSR and warns that CSR is "beta"
-        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-        return torch.sparse.mm(d.t().coalesce(), d).coalesce()
-
-
-class QuadraticTerm:
-    """Base class: a PSD quadratic ``x^T A x - 2 b^T x`` on ``(B, 1, H, W)`` images.
-
-    Subclasses set ``shape`` (the unknown's shape ``(B, 1, H, W)``) and implement
-    :meth:`matvec`, :meth:`diagonal` and :meth:`to_sparse`; :meth:`rhs` defaults to zero.
-    """
-
-    shape: tuple[int, int, int, int]
-    dtype: torch.dtype
-    device: torch.device
-
-    def matvec(self, x: torch.Tensor) -> torch.Tensor:
-        """``A x`` for ``x`` of shape ``(B, 1, H, W)``."""
-        raise NotImplementedError
-
-    def diagonal(self) -> torch.Tensor:
-        """``diag(A)`` as ``(B, 1, H, W)``."""
-        raise NotImplementedError
-
-    def rhs(self) -> torch.Tensor:
-        """The linear part ``b`` (``(B, 1, H, W)``); the minimiser solves ``A x = b``."""
-        return torch.zeros(self.shape, dtype=self.dtype, device=self.device)
-
-    def to_sparse(self) -> torch.Tensor:
-        """``A`` assembled as a sparse COO ``(B H W, B H W)`` matrix (the reference)."""
-        raise NotImplementedError
-
-    def energy(self, x: torch.Tensor) -> torch.Tensor:
-        """``x^T A x - 2 b^T x`` per image, ``(B,)`` (the energy up to a constant)."""
-        return ((self.matvec(x) - 2 * self.rhs()) * x).flatten(1).sum(1)
-
-    def _check(self, x: torch.Tensor) -> None:
-        if tuple(x.shape) != tuple(self.shape):
-            raise ShapeError(f"expected x of shape {tuple(self.shape)}, got {tuple(x.shape)}")
 
 
 class StencilQuadratic(QuadraticTerm):
@@ -119,13 +80,13 @@ class StencilQuadratic(QuadraticTerm):
         self.dtype = weights.dtype
         self.device = weights.device
 
-    def _directed(self) -> tuple[list, torch.Tensor, torch.Tensor]:
+    def _directed(self) -> _Directed:
         """Both pair directions: ``(slices, weight view)`` each, weights ``(B, 2K, H, W)``, degree.
 
         Cached for the current ``weights`` tensor (recomputed when it is replaced, e.g. by
         :class:`SumQuadratic` merging terms).
         """
-        cache = self.__dict__.get("_directed_cache")
+        cache: tuple[torch.Tensor, _Directed] | None = self.__dict__.get("_directed_cache")
         if cache is not None and cache[0] is self.weights:
             return cache[1]
         b, k_, h, w = self.weights.shape
@@ -217,183 +178,6 @@ class StencilQuadratic(QuadraticTerm):
         return out
 
 
-class PairQuadratic(QuadraticTerm):
-    """``sum_p w_p (x_{i_p} - x_{j_p} - c_p)^2`` over a :class:`PairSet`.
-
-    Args:
-        pairs: the pair list.
-        weights: ``(B, P)`` non-negative weights.
-        target: optional ``(B, P)`` target differences.
-    """
-
-    def __init__(
-        self, pairs: PairSet, weights: torch.Tensor, target: torch.Tensor | None = None
-    ) -> None:
-        if weights.dim() != 2 or weights.shape[1] != pairs.num_pairs:
-            raise ShapeError(f"expected weights (B, {pairs.num_pairs}), got {tuple(weights.shape)}")
-        if target is not None and target.shape != weights.shape:
-            raise ShapeError(
-                f"target {tuple(target.shape)} must match weights {tuple(weights.shape)}"
-            )
-        self.pairs = pairs
-        self.weights = weights
-        self.target = target
-        self.shape = (weights.shape[0], 1, pairs.height, pairs.width)
-        self.dtype = weights.dtype
-        self.device = weights.device
-
-    def matvec(self, x: torch.Tensor) -> torch.Tensor:
-        """``M^T W M x`` with gather/scatter."""
-        self._check(x)
-        return self.pairs.laplacian_matvec(self.weights, x)
-
-    def diagonal(self) -> torch.Tensor:
-        """``diag(A)``."""
-        return self.pairs.laplacian_diagonal(self.weights)
-
-    def rhs(self) -> torch.Tensor:
-        """``M^T W c``."""
-        if self.target is None:
-            return super().rhs()
-        return self.pairs.adjoint((self.weights * self.target).unsqueeze(1))
-
-    def to_sparse(self) -> torch.Tensor:
-        """``D^T D`` from :meth:`PairSet.difference_matrix`."""
-        return sparse_gram(self.pairs.difference_matrix(self.weights))
-
-
-class ConstraintQuadratic(QuadraticTerm):
-    """``sum_r w_r ((M x)_r - c_r)^2`` for general sparse constraint rows ``M``.
-
-    Args:
-        matrix: sparse ``(B R, B H W)`` block-diagonal rows (see
-            :func:`~torchiid.priors.pairs.constraint_matrix`).
-        shape: the unknown's shape ``(B, 1, H, W)``.
-        weights: optional ``(B R,)`` non-negative row weights (default 1).
-        target: optional ``(B R,)`` row targets ``c`` (default 0).
-    """
-
-    def __init__(
-        self,
-        matrix: torch.Tensor,
-        shape: Sequence[int],
-        weights: torch.Tensor | None = None,
-        target: torch.Tensor | None = None,
-    ) -> None:
-        shape = tuple(int(s) for s in shape)
-        n = shape[0] * shape[2] * shape[3]
-        if len(shape) != 4 or shape[1] != 1 or matrix.shape[1] != n:
-            raise ShapeError(
-                f"constraint matrix {tuple(matrix.shape)} does not fit unknowns of shape {shape}"
-            )
-        r = matrix.shape[0]
-        for name, v in (("weights", weights), ("target", target)):
-            if v is not None and tuple(v.shape) != (r,):
-                raise ShapeError(f"expected {name} of shape ({r},), got {tuple(v.shape)}")
-        self.matrix = matrix.coalesce()
-        self.matrix_t = self.matrix.t().coalesce()
-        self.row_weights = (
-            torch.ones(r, dtype=matrix.dtype, device=matrix.device) if weights is None else weights
-        )
-        self.target = target
-        self.shape = shape
-        self.dtype = matrix.dtype
-        self.device = matrix.device
-
-    def matvec(self, x: torch.Tensor) -> torch.Tensor:
-        """``M^T W M x``: two sparse products, or on the CPU a gather and two index-adds."""
-        self._check(x)
-        if self.device.type == "cpu":
-            return self.add_matvec(x, torch.zeros_like(x))
-        mx = torch.sparse.mm(self.matrix, x.reshape(-1, 1))
-        return torch.sparse.mm(self.matrix_t, self.row_weights.view(-1, 1) * mx).view(self.shape)
-
-    def add_matvec(self, x: torch.Tensor, out: torch.Tensor, alpha: float = 1.0) -> torch.Tensor:
-        """``out += alpha · M^T W M x`` (in place, returns ``out``).
-
-        On the CPU the rows are few (one per patch) against ``H·W`` unknowns, so the product
-        gathers the entries it needs and index-adds the rows' contributions into ``out``:
-        about 20 µs against 140 µs for the two ``torch.sparse.mm`` calls and the pass that
-        adds their ``(H·W)`` result (192 LLE rows at 512×384). On other devices the
-        sparse products (``index_add_`` there sums with atomics, in no fixed order).
-        """
-        self._check(x)
-        if self.device.type != "cpu":
-            return out.add_(self.matvec(x), alpha=alpha)
-        rows, cols, vals = self._entries
-        mx = x.new_zeros(self.matrix.shape[0]).index_add_(0, rows, vals * x.reshape(-1)[cols])
-        scaled = (self.row_weights * mx).mul_(alpha)
-        out.view(-1).index_add_(0, cols, scaled[rows] * vals)
-        return out
-
-    @cached_property
-    def _entries(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        idx = self.matrix.indices()
-        return idx[0].contiguous(), idx[1].contiguous(), self.matrix.values()
-
-    def diagonal(self) -> torch.Tensor:
-        """``diag(A)_c = sum_r w_r M_rc^2``."""
-        idx, val = self.matrix.indices(), self.matrix.values()
-        d = torch.zeros(self.matrix.shape[1], dtype=self.dtype, device=self.device)
-        d.index_add_(0, idx[1], self.row_weights[idx[0]] * val * val)
-        return d.view(self.shape)
-
-    def rhs(self) -> torch.Tensor:
-        """``M^T W c``."""
-        if self.target is None:
-            return super().rhs()
-        wc = (self.row_weights * self.target).view(-1, 1)
-        return torch.sparse.mm(self.matrix_t, wc).view(self.shape)
-
-    def to_sparse(self) -> torch.Tensor:
-        """``M^T W M`` assembled."""
-        idx, val = self.matrix.indices(), self.matrix.values()
-        sw = self.row_weights.clamp_min(0).sqrt()
-        d = torch.sparse_coo_tensor(
-            idx, val * sw[idx[0]], self.matrix.shape, check_invariants=False
-        )
-        return sparse_gram(d.coalesce())
-
-
-class DiagonalQuadratic(QuadraticTerm):
-    """``sum_i a_i (x_i - t_i)^2``: an anchor (or a pin) on individual pixels.
-
-    Args:
-        weights: ``(B, 1, H, W)`` non-negative ``a``.
-        target: ``(B, 1, H, W)`` targets ``t`` (default 0).
-    """
-
-    def __init__(self, weights: torch.Tensor, target: torch.Tensor | None = None) -> None:
-        if weights.dim() != 4 or weights.shape[1] != 1:
-            raise ShapeError(f"expected weights (B, 1, H, W), got {tuple(weights.shape)}")
-        self.weights = weights
-        self.target = target
-        self.shape = tuple(weights.shape)
-        self.dtype = weights.dtype
-        self.device = weights.device
-
-    def matvec(self, x: torch.Tensor) -> torch.Tensor:
-        """``diag(a) x``."""
-        self._check(x)
-        return self.weights * x
-
-    def diagonal(self) -> torch.Tensor:
-        """``a``."""
-        return self.weights
-
-    def rhs(self) -> torch.Tensor:
-        """``a t``."""
-        return super().rhs() if self.target is None else self.weights * self.target
-
-    def to_sparse(self) -> torch.Tensor:
-        """``diag(a)``."""
-        n = self.weights.numel()
-        i = torch.arange(n, device=self.device)
-        return torch.sparse_coo_tensor(
-            torch.stack([i, i]), self.weights.reshape(-1), (n, n), check_invariants=False
-        )
-
-
 class SumQuadratic(QuadraticTerm):
     """``sum_t lambda_t E_t``: a weighted sum of terms on the same unknowns.
 
@@ -426,7 +210,7 @@ class SumQuadratic(QuadraticTerm):
             # accumulate lam * t, offset by offset, into one term on the widest stencil
             # (or on t's own when it does not fit): one buffer per stencil, no per-term copies
             fits = widest is not None and set(t.stencil.offsets) <= set(widest.offsets)
-            st = widest if fits else t.stencil
+            st = widest if widest is not None and fits else t.stencil
             m = merged.get(id(st))
             if m is None:
                 m = StencilQuadratic.__new__(StencilQuadratic)
@@ -448,13 +232,14 @@ class SumQuadratic(QuadraticTerm):
                     dst[:, pos[o]].add_(src[:, n], alpha=lam)
         self.terms: list[tuple[float, QuadraticTerm]] = [(1.0, m) for m in merged.values()] + others
         first = active[0][1]
-        self.shape = tuple(first.shape)
+        b, c, h, w = first.shape
+        self.shape = (b, c, h, w)
         self.dtype = first.dtype
         self.device = first.device
 
     def matvec(self, x: torch.Tensor) -> torch.Tensor:
         """``sum_t lambda_t A_t x``."""
-        out = None
+        out: torch.Tensor | None = None
         for lam, t in self.terms:
             if out is not None and isinstance(t, ConstraintQuadratic):
                 t.add_matvec(x, out, lam)  # into the stencil's fresh product, no HxW temporary
@@ -464,20 +249,35 @@ class SumQuadratic(QuadraticTerm):
                 out = y if lam == 1.0 else lam * y
             else:
                 out = out.add_(y, alpha=lam)  # out is a fresh tensor of this call
-        return out
+        return _nonempty(out)
 
     def diagonal(self) -> torch.Tensor:
         """``sum_t lambda_t diag(A_t)``."""
-        return sum(lam * t.diagonal() for lam, t in self.terms)
+        return self._weighted(lambda t: t.diagonal())
 
     def rhs(self) -> torch.Tensor:
         """``sum_t lambda_t b_t``."""
-        return sum(lam * t.rhs() for lam, t in self.terms)
+        return self._weighted(lambda t: t.rhs())
+
+    def _weighted(self, part: Callable[[QuadraticTerm], torch.Tensor]) -> torch.Tensor:
+        """``sum_t lambda_t part(t)``, summed as Python's ``sum`` does (from 0)."""
+        out: torch.Tensor | None = None
+        for lam, t in self.terms:
+            v = lam * part(t)
+            out = 0 + v if out is None else out + v
+        return _nonempty(out)
 
     def to_sparse(self) -> torch.Tensor:
         """``sum_t lambda_t A_t`` assembled."""
-        out = None
+        out: torch.Tensor | None = None
         for lam, t in self.terms:
             a = t.to_sparse() * lam
             out = a if out is None else out + a
-        return out.coalesce()
+        return _nonempty(out).coalesce()
+
+
+def _nonempty(total: torch.Tensor | None) -> torch.Tensor:
+    """The sum over the terms (a :class:`SumQuadratic` has at least one)."""
+    if total is None:
+        raise ShapeError("SumQuadratic needs at least one term with a non-zero weight")
+    return total

@@ -51,7 +51,7 @@ def _unit_chromaticity(image: torch.Tensor, dark_eps: float) -> torch.Tensor:
     """``I / ‖I‖`` per pixel (channels floored at ``dark_eps``), ``(B, 3, H, W)``.
 
     The norm as a sum of squares: ``Tensor.norm(dim=1)`` over the channel axis takes a slow
-    strided path (12.5 ms against 0.14 ms at 512×384).
+    strided path.
     """
     chrom = image.clamp_min(dark_eps)
     return chrom / chrom.square().sum(dim=1, keepdim=True).sqrt()
@@ -239,7 +239,7 @@ def edge_confidence(
         if t_e > 0:
             chrom = _unit_chromaticity(image, dark_eps)
             chrom_pad = F.pad(chrom, (1, 1, 1, 1), mode="replicate")
-        if t_d > 0:
+        if t_d > 0 and logp is not None:
             logp_pad = F.pad(logp, (1, 1, 1, 1), mode="replicate")
         inside = None if mask is None else F.pad(mask.to(image.dtype), (1, 1, 1, 1))
         for dy in range(3):
@@ -250,12 +250,12 @@ def edge_confidence(
                 d = torch.zeros_like(e)
                 if chrom is not None:
                     d = (1 - (chrom * chrom_pad[win]).sum(1, keepdim=True)) / t_e
-                if t_d > 0:
+                if t_d > 0 and logp is not None:
                     d = torch.maximum(d, (logp - logp_pad[win]).abs() / t_d)
                 if inside is not None:
                     d = d * inside[win]
                 e = torch.maximum(e, d)
-    if t_h > 0:
+    if t_h > 0 and logp is not None:
         e = torch.maximum(e, _stroke_height(logp, mask) / t_h)
     return torch.exp(-(e**2))
 

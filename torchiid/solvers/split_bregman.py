@@ -24,7 +24,8 @@ Duality gap (``gap_tol``). The clamped Bregman variable gives a dual-feasible po
 M_k)ᵀ p_k``, bounds the minimum from below: ``(J(z) − D(p)) / J(z)`` bounds how far ``J(z)`` is
 above it, relatively, whatever ``θ`` and the start. Measured every few iterations from the
 Bregman update's own pass (``bregman_step(..., stats=True)``), it replaces the change of ``z``
-as the stopping rule, and its residuals drive residual balancing of ``θ`` (``theta_range``).
+as the stopping rule, and its residuals drive residual balancing of ``θ`` (``theta_range``;
+:mod:`torchiid.solvers.bregman_gap`).
 
 Terms are duck-typed (see :mod:`torchiid.priors.reflectance_terms`):
 ``bregman_step(z, b, λ, with_l1) -> (b, rhs, l1)`` (``b=None``: the zero state),
@@ -39,8 +40,10 @@ change of the right-hand side (``b' − A z = (b − A z) + (b' − b)``), inste
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import logging
-import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -49,14 +52,69 @@ import torch
 
 from torchiid.core.check import check_finite, check_shape
 from torchiid.core.exceptions import ParameterError, ShapeError
-from torchiid.solvers.pcg import pcg
+from torchiid.solvers.bregman_gap import GAP_FLOOR, Gap, measure_gap
+from torchiid.solvers.pcg import PCGResult, pcg
+from torchiid.solvers.splitting import Splitting, change_penalty
 
-__all__ = ["SplitBregmanResult", "split_bregman", "change_penalty", "GAP_FLOOR"]
+__all__ = [
+    "SplitBregmanOptions",
+    "SplitBregmanResult",
+    "split_bregman",
+    "change_penalty",
+    "GAP_FLOOR",
+]
+
+
+@dataclass(frozen=True)
+class SplitBregmanOptions:
+    """The settings of a :func:`split_bregman` solve (not of the energy it minimises).
+
+    Attributes:
+        theta: splitting penalty ``θ > 0``.
+        tol: per-image stopping threshold on the relative change of ``z``.
+        max_outer: maximum Bregman iterations.
+        cg_tol: relative residual tolerance of each ``z`` step.
+        cg_max_iter: CG iteration cap of each ``z`` step (partial solves are expected, so no
+            warning is emitted; the residual is reported).
+        track_objective: evaluate ``J`` after every iteration (the L1 norms cost about a third
+            of a Bregman update; the pipeline turns this off).
+        gap_tol: stop each image when its relative duality gap falls below this, measured
+            at most every ``check_every`` iterations, instead of on the change of ``z`` (``tol``
+            is then unused). The gap is ``J(z) − D(p)`` over ``max(J(z), GAP_FLOOR · J(0))``:
+            below a thousandth of the data's energy ``J(0) = γ_a ‖ρ‖²`` it is absolute.
+            Needs terms with ``bregman_stats`` (the difference terms); with others the
+            change rule applies.
+        check_every: the most iterations between two measurements of the gap. From the
+            second measurement on, the next one comes when the gap, shrinking at the rate
+            measured between the last two, would reach ``gap_tol`` (at least 1 iteration
+            later, at most ``check_every``), so a solve usually runs fewer iterations past
+            its tolerance than a fixed interval would (in a batch, the image predicted to get
+            there first sets the schedule).
+        theta_range: ``(θ_lo, θ_hi)``: with ``gap_tol``, residual balancing (Boyd et al. 2011,
+            §3.4.1) at every measurement: halve ``θ`` (down to ``θ_lo``) when the relative dual
+            residual exceeds ``balance[0]`` times the relative primal one, double it (up to
+            ``θ_hi``) when the primal one exceeds ``balance[1]`` times the dual one. The
+            Lagrange multipliers ``θ b`` are kept across a change.
+        balance: ``(lower, raise)``, the residual ratios that change ``θ``. The default
+            lowers ``θ`` only on strong evidence and raises it back as soon as the primal
+            residual dominates: a small penalty gains most early and can slow the tail.
+    """
+
+    theta: float = 40.0
+    tol: float = 1e-3
+    max_outer: int = 5
+    cg_tol: float = 1e-3
+    cg_max_iter: int = 10
+    track_objective: bool = True
+    gap_tol: float | None = None
+    check_every: int = 5
+    theta_range: tuple[float, float] | None = None
+    balance: tuple[float, float] = (10.0, 1.0)
+
 
 logger = logging.getLogger(__name__)
 
-#: the duality gap is relative to ``max(J(z), GAP_FLOOR · J(0))`` (``J(0) = γ_a ‖ρ‖²``)
-GAP_FLOOR = 1e-3
+_OPTION_NAMES = frozenset(f.name for f in dataclasses.fields(SplitBregmanOptions))
 
 
 @dataclass(frozen=True)
@@ -96,23 +154,63 @@ class SplitBregmanResult:
     distance: torch.Tensor | None = None
 
 
+def _options(options: SplitBregmanOptions | None, legacy: dict[str, Any]) -> SplitBregmanOptions:
+    """The options, with the keywords of the flat call (deprecated) applied over them."""
+    options = options or SplitBregmanOptions()
+    if not legacy:
+        return options
+    unknown = sorted(set(legacy) - _OPTION_NAMES)
+    if unknown:
+        raise TypeError(f"split_bregman() got an unexpected keyword argument {unknown[0]!r}")
+    names = ", ".join(f"{k}=..." for k in sorted(legacy))
+    warnings.warn(
+        f"split_bregman({names}) is deprecated; pass split_bregman(..., "
+        f"options=SplitBregmanOptions({names})), from torchiid.solvers.split_bregman",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    return dataclasses.replace(options, **legacy)
+
+
+def _check(
+    rho: torch.Tensor, gammas: Sequence[float], count: int, gamma_a: float, o: SplitBregmanOptions
+) -> None:
+    check_shape(rho, ("B", "C", "H", "W"), "rho")
+    if not rho.is_floating_point():
+        raise ShapeError(f"expected floating rho, got {rho.dtype}")
+    check_finite(rho, "rho")
+    if count != len(gammas):
+        raise ParameterError(f"got {count} terms but {len(gammas)} weights gamma")
+    if any(not g >= 0 for g in gammas):
+        raise ParameterError(f"term weights gamma must be >= 0, got {list(gammas)}")
+    if not gamma_a > 0 or not o.theta > 0:
+        raise ParameterError(f"gamma_a and theta must be > 0, got {gamma_a} and {o.theta}")
+    if o.gap_tol is not None and not (o.gap_tol > 0 and o.check_every >= 1):
+        raise ParameterError(
+            f"need gap_tol > 0 and check_every >= 1, got {o.gap_tol}, {o.check_every}"
+        )
+    if not o.balance[0] >= o.balance[1] > 0:
+        raise ParameterError(f"balance must hold lower >= raise > 0, got {o.balance}")
+    rng = o.theta_range
+    if rng is not None and not (0 < rng[0] <= o.theta <= rng[1]):
+        raise ParameterError(
+            f"theta_range must hold 0 < lo <= theta <= hi, got {rng}, theta {o.theta}"
+        )
+    if o.max_outer < 0 or o.cg_max_iter < 1:
+        raise ParameterError(
+            f"need max_outer >= 0, cg_max_iter >= 1; got {o.max_outer}, {o.cg_max_iter}"
+        )
+
+
 def split_bregman(
     rho: torch.Tensor,
     terms: Sequence[Any],
     gammas: Sequence[float],
     *,
     gamma_a: float = 1.0,
-    theta: float = 40.0,
     z0: torch.Tensor | None = None,
-    tol: float = 1e-3,
-    max_outer: int = 5,
-    cg_tol: float = 1e-3,
-    cg_max_iter: int = 10,
-    track_objective: bool = True,
-    gap_tol: float | None = None,
-    check_every: int = 5,
-    theta_range: tuple[float, float] | None = None,
-    balance: tuple[float, float] = (10.0, 1.0),
+    options: SplitBregmanOptions | None = None,
+    **legacy: Any,
 ) -> SplitBregmanResult:
     """Solve ``min_z γ_a‖z − ρ‖² + Σ_k γ_k ‖W_k M_k z‖₁`` by Split-Bregman (Eqs. 12–13).
 
@@ -121,35 +219,10 @@ def split_bregman(
         terms: weighted difference operators ``W_k M_k`` (``StencilL1Term``, ``PairL1Term``).
         gammas: ``γ_k >= 0`` per term.
         gamma_a: data weight ``γ_a > 0``.
-        theta: splitting penalty ``θ > 0``.
         z0: start (default ``ρ``).
-        tol: per-image stopping threshold on the relative change of ``z``.
-        max_outer: maximum Bregman iterations.
-        cg_tol: relative residual tolerance of each ``z`` step.
-        cg_max_iter: CG iteration cap of each ``z`` step (partial solves are expected, so no
-            warning is emitted; the residual is reported).
-        track_objective: evaluate ``J`` after every iteration (the L1 norms cost about a third
-            of a Bregman update; the pipeline turns this off).
-        gap_tol: stop each image when its relative duality gap falls below this, measured
-            at most every ``check_every`` iterations, instead of on the change of ``z`` (``tol``
-            is then unused). The gap is ``J(z) − D(p)`` over ``max(J(z), GAP_FLOOR · J(0))``:
-            below a thousandth of the data's energy ``J(0) = γ_a ‖ρ‖²`` it is absolute.
-            Needs terms with ``bregman_stats`` (the difference terms); with others the
-            change rule applies.
-        check_every: the most iterations between two measurements of the gap. From the
-            second measurement on, the next one comes when the gap, shrinking at the rate
-            measured between the last two, would reach ``gap_tol`` (at least 1 iteration
-            later, at most ``check_every``), so a solve usually runs fewer iterations past
-            its tolerance than a fixed interval would (in a batch, the image predicted to get
-            there first sets the schedule).
-        theta_range: ``(θ_lo, θ_hi)``: with ``gap_tol``, residual balancing (Boyd et al. 2011,
-            §3.4.1) at every measurement: halve ``θ`` (down to ``θ_lo``) when the relative dual
-            residual exceeds ``balance[0]`` times the relative primal one, double it (up to
-            ``θ_hi``) when the primal one exceeds ``balance[1]`` times the dual one. The
-            Lagrange multipliers ``θ b`` are kept across a change.
-        balance: ``(lower, raise)``, the residual ratios that change ``θ``. The default
-            lowers ``θ`` only on strong evidence and raises it back as soon as the primal
-            residual dominates: a small penalty gains most early and can slow the tail.
+        options: the solver's settings (:class:`SplitBregmanOptions`; default its defaults).
+        **legacy: the settings as keywords (``theta=``, ``max_outer=``, ...; deprecated:
+            a :class:`DeprecationWarning` names the ``options=`` form).
 
     Returns:
         :class:`SplitBregmanResult`.
@@ -157,123 +230,75 @@ def split_bregman(
     Shape:
         rho, z0 ``(B, C, H, W)``; any float dtype and device (constants follow ``rho``).
     """
-    check_shape(rho, ("B", "C", "H", "W"), "rho")
-    if not rho.is_floating_point():
-        raise ShapeError(f"expected floating rho, got {rho.dtype}")
-    check_finite(rho, "rho")
-    if len(terms) != len(gammas):
-        raise ParameterError(f"got {len(terms)} terms but {len(gammas)} weights gamma")
-    if any(not g >= 0 for g in gammas):
-        raise ParameterError(f"term weights gamma must be >= 0, got {list(gammas)}")
-    if not gamma_a > 0 or not theta > 0:
-        raise ParameterError(f"gamma_a and theta must be > 0, got {gamma_a} and {theta}")
-    if gap_tol is not None and not (gap_tol > 0 and check_every >= 1):
-        raise ParameterError(f"need gap_tol > 0 and check_every >= 1, got {gap_tol}, {check_every}")
-    if not balance[0] >= balance[1] > 0:
-        raise ParameterError(f"balance must hold lower >= raise > 0, got {balance}")
-    if theta_range is not None and not (0 < theta_range[0] <= theta <= theta_range[1]):
-        raise ParameterError(
-            f"theta_range must hold 0 < lo <= theta <= hi, got {theta_range}, theta {theta}"
-        )
-    if max_outer < 0 or cg_max_iter < 1:
-        raise ParameterError(
-            f"need max_outer >= 0, cg_max_iter >= 1; got {max_outer}, {cg_max_iter}"
-        )
+    o = _options(options, legacy)
+    _check(rho, gammas, len(terms), gamma_a, o)
     rho = rho.contiguous()  # channels-last strides make the stencil products ~5x slower
     z = (rho if z0 is None else z0).clone(memory_format=torch.contiguous_format)
     if z.shape != rho.shape:
         raise ShapeError(f"z0 has shape {tuple(z.shape)} but rho has shape {tuple(rho.shape)}")
     check_finite(z, "z0")
-    bsz, c, h, w = rho.shape
     active_terms = [(t, g) for t, g in zip(terms, gammas, strict=True) if g > 0]
-    lams = [g / theta for _, g in active_terms]
-    gap_mode = gap_tol is not None and all(
+    gap_mode = o.gap_tol is not None and all(
         getattr(t, "bregman_stats", False) for t, _ in active_terms
     )
-    if gap_tol is not None and not gap_mode:
+    if o.gap_tol is not None and not gap_mode:
         logger.debug("split-bregman: a term measures no duality gap; stopping on the change")
-    data_rhs = 2.0 * gamma_a * rho
-    # the data's energy J(0) = γ_a‖ρ‖² per image: the gap's floor and the distance's scale
-    energy0 = gamma_a * rho.square().flatten(1).sum(dim=1) if gap_mode else None
-    floor = GAP_FLOOR * energy0 if gap_mode else None
-
-    def bregman(z: torch.Tensor, states: list[torch.Tensor | None], final: bool, stats: bool):
-        rhs = data_rhs.clone()
-        obj = gamma_a * (z - rho).square().flatten(1).sum(dim=1) if track_objective else None
-        measured = []
-        for n, ((term, g), lam) in enumerate(zip(active_terms, lams, strict=True)):
-            # final: no later step reads this state; a term that keeps no state for a later
-            # solve need not store it (StencilL1Term: 60 planes per channel left unwritten)
-            kw = {"final": True} if final and getattr(term, "skips_final_state", False) else {}
-            if stats:
-                kw["stats"] = True
-            out = term.bregman_step(z, states[n], lam, with_l1=track_objective, **kw)
-            states[n], r, l1 = out[:3]
-            if stats:
-                measured.append((g, out[3]))
-            rhs = rhs.add_(r, alpha=theta)
-            if track_objective:
-                obj = obj + g * l1
-        return rhs, obj, measured
-
-    # None: the zero state; a term's initial_state (e.g. the previous alternation's) warm-starts
-    states: list[torch.Tensor | None] = [getattr(t, "initial_state", None) for t, _ in active_terms]
-    rhs, obj, _ = bregman(z, states, final=max_outer <= 1, stats=False)
-    objective = [obj] if track_objective else None
-    outer = torch.zeros(bsz, dtype=torch.long, device=rho.device)
-    change = torch.zeros(bsz, dtype=rho.dtype, device=rho.device)
-    cg_res = torch.zeros(bsz, dtype=rho.dtype, device=rho.device)
-    gap = torch.full((bsz,), float("nan"), dtype=rho.dtype, device=rho.device)
-    distance = torch.full_like(gap, float("nan"))
-    active = torch.ones(bsz, dtype=torch.bool, device=rho.device)
+    sp = Splitting(rho, active_terms, gamma_a, o.theta, o.track_objective)
+    rhs, obj, _ = sp.bregman(z, final=o.max_outer <= 1, stats=False)
     if not active_terms:
         # no L1 term: the minimiser is rho itself
-        objective = obj.unsqueeze(0) if track_objective else None
-        return SplitBregmanResult(
-            rho.clone(), outer, 0, objective, change, torch.ones_like(active), cg_res,
-            torch.zeros_like(gap), theta, torch.zeros_like(gap),
-        )  # fmt: skip
+        return _unsplit(rho, obj, o.theta)
+    gap = None
+    if gap_mode and o.gap_tol is not None:
+        gap = Gap.unmeasured(rho, gamma_a, o.gap_tol, o.check_every)
+    return _iterate(sp, z, (rhs, obj), o, gap)
 
-    degree = sum(t.normal_diagonal() for t, _ in active_terms)
 
-    def preconditioner() -> torch.Tensor:
-        diag = 2.0 * gamma_a + theta * degree
-        return (1.0 / diag).expand(bsz, c, h, w).reshape(bsz * c, 1, h, w)
+def _unsplit(rho: torch.Tensor, obj: torch.Tensor | None, theta: float) -> SplitBregmanResult:
+    """The result without an active L1 term: ``z = ρ``, converged at once."""
+    bsz = rho.shape[0]
+    zeros = torch.zeros(bsz, dtype=rho.dtype, device=rho.device)
+    outer = torch.zeros(bsz, dtype=torch.long, device=rho.device)
+    done = torch.ones(bsz, dtype=torch.bool, device=rho.device)
+    objective = None if obj is None else obj.unsqueeze(0)
+    return SplitBregmanResult(
+        rho.clone(), outer, 0, objective, zeros, done, zeros.clone(), zeros.clone(), theta,
+        zeros.clone(),
+    )  # fmt: skip
 
-    precond = preconditioner()
 
-    def matvec(x: torch.Tensor) -> torch.Tensor:
-        xi = x.view(bsz, c, h, w)
-        out = None
-        for t, _ in active_terms:
-            y = t.normal_matvec(xi)  # a fresh tensor: accumulate in place
-            out = y if out is None else out.add_(y)
-        return out.mul_(theta).add_(xi, alpha=2.0 * gamma_a).view(bsz * c, 1, h, w)
+def _iterate(
+    sp: Splitting,
+    z: torch.Tensor,
+    start: tuple[torch.Tensor, torch.Tensor | None],
+    o: SplitBregmanOptions,
+    gap: Gap | None,
+) -> SplitBregmanResult:
+    """The outer iterations from ``z`` after the first Bregman update (``start``: its rhs, J).
 
-    def sums(x: torch.Tensor) -> torch.Tensor:
-        return x.flatten(1).sum(dim=1)
-
+    ``gap``: stop on the duality gap (``None``: on the change of ``z``).
+    """
+    rhs, obj = start
+    bsz, c, h, w = z.shape
+    rho = sp.rho
+    objective = [obj] if obj is not None else None
+    outer = torch.zeros(bsz, dtype=torch.long, device=rho.device)
+    change = rho.new_zeros(bsz)
+    cg_res = rho.new_zeros(bsz)
+    active = torch.ones(bsz, dtype=torch.bool, device=rho.device)
+    precond = sp.preconditioner()
+    solve = functools.partial(
+        pcg, tol=o.cg_tol, max_iter=o.cg_max_iter, warn=False, true_residual=False
+    )
     cg_total = 0
-    last = None  # the last z step's (rhs, PCGResult), for its residual
-    next_check = check_every  # the iteration (1-based) of the next measurement of the gap
-    previous = None  # the last measurement: (iteration, gaps)
-    for it in range(max_outer):
+    last: tuple[torch.Tensor, PCGResult] | None = None  # the last z step's rhs and result
+    for it in range(o.max_outer):
         b_flat = rhs.reshape(bsz * c, 1, h, w)
         r0 = None
         if last is not None and last[1].r is not None and bool(active.all()):
             # z is the last step's solution: b' − A z = (b − A z) + (b' − b), no product
             r0 = last[1].r + (b_flat - last[0])
-        res = pcg(
-            matvec,
-            b_flat,
-            x0=z.reshape(bsz * c, 1, h, w),
-            precond=precond,
-            tol=cg_tol,
-            max_iter=cg_max_iter,
-            warn=False,
-            true_residual=False,
-            r0=r0,
-        )
+        res = solve(sp.matvec, b_flat, x0=z.reshape(bsz * c, 1, h, w), precond=precond, r0=r0)
         last = (b_flat, res)
         cg_total += res.iterations
         cg_res = torch.where(active, res.residual.view(bsz, c).amax(dim=1), cg_res)
@@ -282,151 +307,46 @@ def split_bregman(
         change = torch.where(active, step, change)
         z = torch.where(active.view(-1, 1, 1, 1), z_new, z)
         outer = outer + active.long()
-        # when due (_next_check: at most every check_every iterations), and at the last update
-        # before the cap (so a capped solve reports the gap of the z it returns, or of the one
-        # before)
-        check = gap_mode and (it + 1 == next_check or it == max_outer - 2)
-        if it == max_outer - 1:
+        # when due (at most every check_every iterations), and at the last update before the
+        # cap (so a capped solve reports the gap of the z it returns, or of the one before)
+        check = gap is not None and (it + 1 == gap.next_check or it == o.max_outer - 2)
+        if it == o.max_outer - 1:
             # last iteration: only the objective is needed, skip the Bregman update
-            obj_new = None
-            if track_objective:
-                obj_new = gamma_a * (z - rho).square().flatten(1).sum(dim=1)
-                for t, g in active_terms:
-                    obj_new = obj_new + g * t.l1(z)
+            obj_new = sp.objective(z)
         else:
-            rhs, obj_new, measured = bregman(z, states, final=it == max_outer - 2, stats=check)
-            if check:
-                # the duality gap: p_k = b_k / λ_k is dual feasible (|p| <= 1), and with
-                # g = Σ γ_k (W_k M_k)ᵀ p_k = θ Σ (W_k M_k)ᵀ b_k the dual objective is
-                # D(p) = min_z γ_a‖z − ρ‖² + ⟨g, z⟩ = ⟨g, ρ⟩ − ‖g‖² / (4 γ_a) <= J(z*)
-                g_adj = theta * sum(m.adjoint for _, m in measured)
-                primal_obj = gamma_a * sums((z - rho).square()) + sum(g * m.l1 for g, m in measured)
-                dual_obj = sums(g_adj * rho) - sums(g_adj.square()) / (4.0 * gamma_a)
-                # relative to J(z), but at least to GAP_FLOOR · J(0) = GAP_FLOOR · γ_a‖ρ‖²: an
-                # objective far below the data's own energy (a nearly flat image) leaves a gap
-                # that float32 sums do not resolve relatively (a two-tone image: J ≈ 6e-6 J(0),
-                # where the relative gap stalled at 9%)
-                scale = torch.maximum(primal_obj, floor).clamp_min(torch.finfo(rho.dtype).tiny)
-                now = (primal_obj - dual_obj) / scale
-                gap = torch.where(active, now, gap)
-                wait = _next_check(now, previous, it + 1, active, gap_tol, check_every)
-                next_check = it + 1 + wait
-                previous = (it + 1, now)
-                # strong convexity: γ_a ‖z − z*‖² <= J(z) − J(z*) <= J(z) − D(p), relative to
-                # ‖ρ‖: ‖z − z*‖² / ‖ρ‖² <= (J(z) − D(p)) / J(0)
-                excess = (primal_obj - dual_obj).clamp_min(0.0)
-                dist = (excess / energy0.clamp_min(torch.finfo(rho.dtype).tiny)).sqrt()
-                distance = torch.where(active, dist, distance)
-                if logger.isEnabledFor(logging.DEBUG):
-                    logger.debug(
-                        "split-bregman: iteration %d, duality gap %s", it + 1, now.tolist()
-                    )
-                if theta_range is not None:
-                    new_theta = _balance(
-                        z, rho, gamma_a, g_adj, measured, active & (now >= gap_tol),
-                        theta, theta_range, balance,
-                    )  # fmt: skip
-                    if new_theta != theta:
-                        # keep the multipliers θ b: b ← b θ_old / θ_new, and the z step's
-                        # right-hand side θ Σ Mᵀ W (d − b) for the new θ and b
-                        new_lams = [g / new_theta for _, g in active_terms]
-                        rhs = change_penalty(
-                            rhs, data_rhs, g_adj, states, active_terms, lams, new_lams,
-                            new_theta / theta,
-                        )  # fmt: skip
-                        theta, lams = new_theta, new_lams
-                        precond = preconditioner()
-                        last = None
-                        logger.debug("split-bregman: θ -> %g", theta)
-        if track_objective:
+            rhs, obj_new, measured = sp.bregman(z, it == o.max_outer - 2, check)
+            if check and gap is not None:
+                balancing = None if o.theta_range is None else (o.theta_range, o.balance)
+                rhs, retuned = measure_gap(sp, gap, z, rhs, measured, active, it + 1, balancing)
+                if retuned:
+                    precond = sp.preconditioner()
+                    last = None
+        if objective is not None and obj is not None and obj_new is not None:
             obj = torch.where(active, obj_new, obj)
             objective.append(obj)
-        if gap_mode:
+        if gap is not None:
             if check:
-                active = active & ~(gap < gap_tol)  # a NaN gap runs on to the cap
+                active = active & ~(gap.value < gap.tol)  # a NaN gap runs on to the cap
         else:
-            active = active & (change >= tol)
+            active = active & (change >= o.tol)
         if logger.isEnabledFor(logging.DEBUG):
             logger.debug("split-bregman: iteration %d, relative change %s", it + 1, change.tolist())
         if not bool(active.any()):
             break
-    # without a measured gap (no update was measured), the change rule tells
-    converged = torch.where(gap.isnan(), change < tol, gap < gap_tol) if gap_mode else change < tol
+    if gap is not None:
+        # without a measured gap (no update was measured), the change rule tells
+        converged = torch.where(gap.value.isnan(), change < o.tol, gap.value < gap.tol)
+    else:
+        converged = change < o.tol
     return SplitBregmanResult(
         z=z,
         outer_iterations=outer,
         cg_iterations=cg_total,
-        objective=torch.stack(objective) if track_objective else None,
+        objective=torch.stack(objective) if objective is not None else None,
         change=change,
         converged=converged,
         cg_residual=cg_res,
-        gap=gap,
-        theta=theta,
-        distance=distance,
+        gap=gap.value if gap is not None else rho.new_full((bsz,), float("nan")),
+        theta=sp.theta,
+        distance=gap.distance if gap is not None else rho.new_full((bsz,), float("nan")),
     )
-
-
-def _next_check(now, previous, iteration, active, gap_tol, check_every) -> int:
-    """Iterations until the next measurement of the duality gap (1 .. ``check_every``).
-
-    The gaps ``now`` of the images still running are extrapolated at the rate measured since
-    the ``previous`` measurement ``(iteration, gaps)``, ``r = (now / before)^(1 / Δ)`` per
-    iteration; the next measurement comes when the first of them would reach ``gap_tol``.
-    Without a previous measurement, or where no image's gap shrank, ``check_every``.
-    """
-    if previous is None:
-        return check_every
-    then, before = previous
-    running = active & (now >= gap_tol) & (now > 0) & (before > now)
-    if not bool(running.any()):
-        return check_every
-    # log of the per-iteration rate (< 0) and of the remaining factor (<= 0)
-    log_rate = (now[running] / before[running]).log() / (iteration - then)
-    need = float(((gap_tol / now[running]).log() / log_rate).ceil().min())
-    if not math.isfinite(need):  # a rate that rounds to 1: no prediction
-        return check_every
-    return int(min(max(need, 1.0), float(check_every)))
-
-
-def change_penalty(rhs, data_rhs, g_adj, states, active_terms, lams, new_lams, ratio):
-    """Move a Split-Bregman iteration from penalty ``θ`` to ``θ' = ratio · θ``, in place.
-
-    Keeps the Lagrange multipliers ``θ b``: each state becomes ``b · θ / θ'`` (the terms'
-    ``rescale_state``; a 16-bit state only changes its step), and the next ``z`` step's
-    right-hand side ``2γ_a ρ + θ Σ (W M)ᵀ (d − b)`` (``rhs``) becomes ``2γ_a ρ + θ' Σ (W M)ᵀ (d −
-    b θ / θ')``, i.e. ``2γ_a ρ + ratio (rhs − 2γ_a ρ) + (ratio − 1) g`` with ``g = θ Σ (W M)ᵀ b``
-    (``g_adj``, measured with the update): no pass over the state. Returns the new ``rhs``.
-    """
-    for n, (t, _) in enumerate(active_terms):
-        states[n] = t.rescale_state(states[n], lams[n], new_lams[n])
-    rhs = rhs.sub_(data_rhs).mul_(ratio).add_(data_rhs)
-    return rhs.add_(g_adj, alpha=ratio - 1.0)
-
-
-def _balance(z, rho, gamma_a, g_adj, measured, which, theta, theta_range, balance) -> float:
-    """Residual balancing (Boyd et al. 2011, §3.4.1) on relative residuals, over ``which``.
-
-    Primal: ``‖W M z − d‖ / max(‖W M z‖, ‖d‖)``; dual: the stationarity residual of the
-    Lagrangian, ``‖2γ_a (z − ρ) + g‖ / ‖g‖`` (``g = θ Σ (W M)ᵀ b``). ``θ`` halves when the dual
-    one is ``balance[0]`` times the primal one, doubles when the primal one is ``balance[1]``
-    times the dual one, within ``theta_range``.
-    """
-    if not bool(which.any()):
-        return theta
-    sel = which.nonzero().flatten()
-    primal = sum(m.primal for _, m in measured)[sel].sum().sqrt()
-    scale = torch.maximum(
-        sum(m.apply_sq for _, m in measured)[sel].sum(),
-        sum(m.split_sq for _, m in measured)[sel].sum(),
-    ).sqrt()
-    dual = (2.0 * gamma_a * (z - rho) + g_adj)[sel].square().sum().sqrt()
-    dual_scale = g_adj[sel].square().sum().sqrt()
-    r = float(primal / scale.clamp_min(1e-30))
-    s = float(dual / dual_scale.clamp_min(1e-30))
-    logger.debug("split-bregman: relative residuals primal %.3g, dual %.3g at θ %g", r, s, theta)
-    lower, raise_ = balance
-    if s > lower * r:
-        return max(0.5 * theta, theta_range[0])
-    if r > raise_ * s:
-        return min(2.0 * theta, theta_range[1])
-    return theta

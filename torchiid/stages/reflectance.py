@@ -56,7 +56,11 @@ import torch
 
 from torchiid.params import ReflectanceParameters
 from torchiid.params.legacy import reflectance_arguments
-from torchiid.solvers.split_bregman import SplitBregmanResult, split_bregman
+from torchiid.solvers.split_bregman import (
+    SplitBregmanOptions,
+    SplitBregmanResult,
+    split_bregman,
+)
 from torchiid.stages.config import ReflectanceProblem
 from torchiid.stages.reflectance_system import (
     ReflectanceCache,
@@ -189,13 +193,8 @@ def solve_reflectance(
     z0 = None if z0 is None else z0.contiguous()
     full = o.theta * o.value_scale
     t4 = time.perf_counter()
-    sol = split_bregman(
-        rho,
-        [term for _, term in built.terms.values()],
-        [gamma for gamma, _ in built.terms.values()],
-        gamma_a=o.gamma_a * o.value_scale,
+    settings = SplitBregmanOptions(
         theta=theta,
-        z0=z0,
         tol=o.bregman_tol,
         max_outer=o.bregman_iter,
         cg_tol=o.bregman_cg_tol,
@@ -203,6 +202,14 @@ def solve_reflectance(
         track_objective=track_objective,
         gap_tol=o.bregman_gap_tol or None,
         theta_range=(full * o.bregman_theta_floor, full) if balanced else None,
+    )
+    sol = split_bregman(
+        rho,
+        [term for _, term in built.terms.values()],
+        [gamma for gamma, _ in built.terms.values()],
+        gamma_a=o.gamma_a * o.value_scale,
+        z0=z0,
+        options=settings,
     )
     t5 = time.perf_counter()
     if cache is not None and "A+B" in built.terms and sol.outer_iterations.max() > 0:
