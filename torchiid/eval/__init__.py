@@ -1,4 +1,9 @@
-"""Evaluation: WHDR, LMSE, SAW AP, si-MSE / DSSIM metrics, dataset readers and eval runs."""
+"""Evaluation: metrics, dataset readers, eval runs and cross-validation.
+
+Metrics: WHDR, LMSE, SAW AP, si-MSE / DSSIM and the texture left in a shading
+(:mod:`torchiid.eval.texture`); cross-validation of parameter choices in
+:mod:`torchiid.eval.crossval`.
+"""
 
 from torchiid.eval.datasets import (
     DATASETS,
@@ -23,6 +28,7 @@ from torchiid.eval.results import load_layer
 from torchiid.eval.runner import EvalRunner, run_evaluation
 from torchiid.eval.saw import average_precision, saw_ap, saw_scores
 from torchiid.eval.scoring import COUNT_COLUMNS, METRICS, pooled_saw_ap, score_sample
+from torchiid.eval.texture import local_linear_residual, texture_in_shading
 from torchiid.eval.whdr import load_judgements, whdr
 
 __all__ = [
@@ -45,6 +51,7 @@ __all__ = [
     "dssim",
     "load_judgements",
     "load_layer",
+    "local_linear_residual",
     "local_mse",
     "method_parameters",
     "mit_lmse",
@@ -60,5 +67,6 @@ __all__ = [
     "score_sample",
     "si_mse",
     "ssim",
+    "texture_in_shading",
     "whdr",
 ]

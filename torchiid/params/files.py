@@ -34,6 +34,7 @@ ADDED_SINCE: dict[str, dict[str, Any]] = {
     "0.10.0": {"lambda_s": 0.0, "t_e": 0.0, "t_d": 0.0, "t_h": 0.0},
     "0.11.0": {"bregman_gap_tol": 0.0, "bregman_theta_floor": 1.0},
     "0.12.0": {"base_mix": 1.0},
+    "1.0.0": {"t_x": 0.0},
 }
 
 

@@ -13,6 +13,9 @@ PRESETS: dict[str, dict[str, Any]] = {
     # printed matter (documents, labels, packaging, posters): S_l does not tie the pixels of
     # thin strokes either, so black text on white paper stays in the reflectance
     "print": {"t_h": 0.5},
+    # densely textured surfaces (tiles, wood grain, patterned fabric, fur): S_l takes its
+    # targets from the image without its fine texture, so the texture stays in the reflectance
+    "texture": {"t_x": 0.05},
     # the paper's energy with the solvers at their most thorough
     "paper": {
         "base_mix": 1.0,

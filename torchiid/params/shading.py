@@ -17,10 +17,11 @@ class ShadingParameters(ParameterGroup):
     smoothness, not one of the paper's priors) has no switch: ``lambda_s = 0`` is off, so the
     ablation variants of the ``default`` preset keep it.
 
-    The confidence marks of ``S_l`` (``t_i``, ``t_e``, ``t_d``, ``t_h``; 0 is off, the paper's
-    weights) untie pixel pairs whose colour does not name one material; see
+    The confidence marks of ``S_l`` (``t_i``, ``t_e``, ``t_d``, ``t_h``, ``t_x``; 0 is off,
+    the paper's weights) untie pixel pairs whose colour does not name one material; see
     :func:`~torchiid.priors.shading_terms.retinex_weights` and
-    :func:`~torchiid.priors.shading_terms.edge_confidence`.
+    :func:`~torchiid.priors.shading_terms.edge_confidence` and
+    :func:`~torchiid.priors.texture.detexture`.
     """
 
     lambda_g: float = param(
@@ -84,6 +85,15 @@ class ShadingParameters(ParameterGroup):
         "stroke-height deviation of the same marks: pixels on a line at most 4 px wide "
         "standing more than about t_h in log-intensity from its surroundings are not tied "
         "(0: off; 0.5 in the print preset)",
+        paper=0.0,
+        valid=">= 0",
+    )
+    t_x: float = param(
+        0.0,
+        "texture deviation of S_l: where the image is densely textured (median fine-scale "
+        "residual of log-intensity well above t_x), S_l takes its targets from the image "
+        "without its fine texture, so texture of one hue stays in the reflectance (0: off; "
+        "0.05 in the texture preset)",
         paper=0.0,
         valid=">= 0",
     )

@@ -49,6 +49,7 @@ from torchiid.priors.shading_terms import (
     shading_stencil,
     smoothness_term,
 )
+from torchiid.priors.texture import detexture
 from torchiid.stages.config import ShadingProblem
 
 __all__ = [
@@ -288,10 +289,11 @@ def _local_makers(
         )
     if weights["S_l"] > 0:
         confident = o.dark_level > 0 or o.clip_level > 0
-        marks = (o.t_c, o.t_b, o.t_i, o.t_e, o.t_d, o.t_h)
+        marks = (o.t_c, o.t_b, o.t_i, o.t_e, o.t_d, o.t_h, o.t_x)
         makers["S_l"] = (
             lambda: retinex_term(
-                image, stencil, o.t_c, o.t_b, o.dark_eps, mask,
+                detexture(image, o.t_x, mask, o.dark_eps) if o.t_x > 0 else image,
+                stencil, o.t_c, o.t_b, o.dark_eps, mask,
                 confidence=(
                     pixel_confidence(image, o.dark_level, o.clip_level) if confident else None
                 ),
