@@ -103,3 +103,11 @@ def test_main_prints_a_table_and_exit_status(tool, tmp_path, capsys):
     assert "| import cycles | 0 |" in out and "clean" in out
     root = _package(tmp_path / "2", {"a.py": "x = 1\n" * 20})
     assert tool.main([str(root), "--max-lines", "10"]) == 1
+
+
+def test_the_package_has_no_cycles_long_modules_or_long_signatures(tool):
+    report = tool.check_tree(ROOT / "torchiid")
+    assert report.modules > 100
+    assert report.cycles == []
+    assert report.long_modules == []
+    assert report.long_signatures == []
