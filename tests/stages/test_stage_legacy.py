@@ -99,3 +99,20 @@ def test_the_old_reflectance_calls_warn_and_solve_the_same_problem():
     with pytest.warns(DeprecationWarning, match="temporal_term"):
         gamma, _ = temporal_term(prior, s.reflectance, old_w, old_o)
     assert gamma == temporal_term(prior, s.reflectance, new)[0] == 2.0 * 1.5 * 255
+
+
+def test_a_cache_in_the_options_place_is_the_cache():
+    from torchiid.params.legacy import cache_in_options
+    from torchiid.stages import ShadingSystemCache
+
+    cache, options = ShadingSystemCache(), _old("ShadingOptions")()
+    assert cache_in_options(cache, None, ShadingSystemCache) == (None, cache)
+    assert cache_in_options(options, cache, ShadingSystemCache) == (options, cache)
+    assert cache_in_options(None, None, ShadingSystemCache) == (None, None)
+    problem = ShadingProblem(mondrian(16, 16, seed=1).image)
+    group = ShadingParameters(lambda_m=0.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the new form does not warn
+        build_shading_system(problem, group, cache)
+        again = build_shading_system(problem, group, cache)
+    assert "S_l" in again.terms and cache.hits > 0  # reused: the third argument is the cache
