@@ -351,3 +351,27 @@ def test_the_public_names_stay_importable_from_torchiid_model():
     }  # fmt: skip
     assert names <= set(model.__all__)
     assert all(getattr(model, name) is not None for name in names)
+
+
+def test_the_solve_record_keeps_the_order_and_roundings_of_info_json():
+    from torchiid.model import SolveReport
+    from torchiid.pipeline.results import solve_record
+
+    solves = (
+        SolveReport("shading", 1, 40, 0, 1e-5, 1e-4, 100, True),
+        SolveReport("reflectance", 1, 2, 6, 3e-2, 1e-3, 2, False),
+    )
+    result = Decomposition(
+        torch.ones(2, 3, 4, 4), torch.ones(2, 1, 4, 4), None, None, (), FAST,
+        albedo_excess=torch.tensor([0.25, 0.5]), solves=solves,
+    )  # fmt: skip
+    times = {"shading 1": 0.123456, "total": 1.0}
+    record = solve_record(result, FAST, 2.34567, times, places=4)
+    assert list(record) == [
+        "albedo_quantile", "albedo_excess", "seconds", "times", "converged", "solves",
+    ]  # fmt: skip
+    assert record["albedo_quantile"] == FAST.output.albedo_quantile
+    assert record["albedo_excess"] == 0.25 and record["seconds"] == 2.346
+    assert record["times"] == {"shading 1": 0.1235, "total": 1.0}
+    assert record["converged"] is False and record["solves"] == [str(s) for s in solves]
+    assert "times" not in solve_record(result, FAST, 2.0)

@@ -99,3 +99,42 @@ def test_the_old_reflectance_calls_warn_and_solve_the_same_problem():
     with pytest.warns(DeprecationWarning, match="temporal_term"):
         gamma, _ = temporal_term(prior, s.reflectance, old_w, old_o)
     assert gamma == temporal_term(prior, s.reflectance, new)[0] == 2.0 * 1.5 * 255
+
+
+def test_a_cache_in_the_options_place_is_the_cache():
+    from torchiid.params.legacy import cache_in_options
+    from torchiid.stages import ShadingSystemCache
+
+    cache, options = ShadingSystemCache(), _old("ShadingOptions")()
+    assert cache_in_options(cache, None, ShadingSystemCache) == (None, cache)
+    assert cache_in_options(options, cache, ShadingSystemCache) == (options, cache)
+    assert cache_in_options(None, None, ShadingSystemCache) == (None, None)
+    problem = ShadingProblem(mondrian(16, 16, seed=1).image)
+    group = ShadingParameters(lambda_m=0.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the new form does not warn
+        build_shading_system(problem, group, cache)
+        again = build_shading_system(problem, group, cache)
+    assert "S_l" in again.terms and cache.hits > 0  # reused: the third argument is the cache
+
+
+def test_old_weights_and_options_convert_to_the_groups_and_back():
+    shading_weights, reflectance_weights = _old("ShadingWeights"), _old("ReflectanceWeights")
+    assert shading_weights().as_dict() == {
+        "S_c": 0.02, "S_p": 0.02, "S_m": 0.02, "S_l": 2.0, "S_s": 0.0,
+    }  # fmt: skip
+    assert shading_weights(0.0, 0.0, 0.0, 0.0, 0.1).active
+    assert not reflectance_weights(0.0, 0.0, 0.0, 1.0).active  # the data term is no prior
+    assert reflectance_weights(gamma_g=0.0).as_dict() == {"A": 20.0, "B": 20.0, "C": 0.0}
+    options = _old("ShadingOptions")(levels=2, tol=1e-6, seed=3, warn=False)
+    group = options.to_parameters()
+    assert (group.coarse_levels, group.cg_tol) == (2, 1e-6)
+    assert type(options).from_parameters(group, 3, False) == options
+    assert options.replace(levels=4).to_parameters() == group.replace(coarse_levels=4)
+    r_options = _old("ReflectanceOptions")(eps=1e-3, max_outer=4, merge_stencil_terms=False)
+    r_group = r_options.to_parameters()
+    assert (r_group.shading_floor, r_group.bregman_iter) == (1e-3, 4)
+    back = type(r_options).from_parameters(r_group, track_objective=True)
+    assert back == r_options.replace(merge_stencil_terms=True)
+    with pytest.raises(ParameterError, match="coarse_levels"):
+        options.replace(levels=0)

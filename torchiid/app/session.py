@@ -25,6 +25,7 @@ from torchiid.io import load_image
 from torchiid.io.layers import srgb8_from_linear
 from torchiid.model import Decomposition, check_memory, decompose
 from torchiid.params import Parameters
+from torchiid.pipeline.results import solve_record
 from torchiid.resample import downsample, working_size
 
 __all__ = ["PREVIEW_SIDE", "Layers", "Session", "open_photo", "srgb8", "view_shading"]
@@ -160,12 +161,7 @@ def _info(name: str, loaded: Any, result: Decomposition, params: Parameters, sec
         "bit_depth": loaded.bit_depth,
         "iterations": params.iterations,
         "shading_white": float(result.shading_white[0]),
-        "albedo_quantile": params.output.albedo_quantile,
-        "albedo_excess": float(result.albedo_excess[0]),
-        "seconds": round(seconds, 3),
-        "times": {k: round(v, 3) for k, v in result.times.items()},
-        "converged": result.converged,
-        "solves": [str(r) for r in result.solves],
+        **solve_record(result, params, seconds, result.times),
     }
 
 

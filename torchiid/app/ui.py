@@ -50,6 +50,11 @@ def theme() -> gr.themes.Base:
     )
 
 
+def _layer_image(label: str, elem_id: str) -> gr.Image:
+    """One of the three images side by side: the photo, its reflectance, its shading."""
+    return gr.Image(label=label, interactive=False, format="png", height=230, elem_id=elem_id)
+
+
 def _edit_controls() -> dict[str, gr.components.Component]:
     """The edit controls, one per field of :class:`~torchiid.app.edits.EditSettings`."""
     d = EditSettings()
@@ -130,27 +135,9 @@ def build_app(config: AppConfig, folder: ServerFolder) -> gr.Blocks:
                 )
             with gr.Column(scale=3):
                 with gr.Row():
-                    photo = gr.Image(
-                        label="Photo: click an object to select it",
-                        interactive=False,
-                        format="png",
-                        height=230,
-                        elem_id="photo",
-                    )
-                    reflectance = gr.Image(
-                        label="Reflectance",
-                        interactive=False,
-                        format="png",
-                        height=230,
-                        elem_id="reflectance",
-                    )
-                    shading = gr.Image(
-                        label="Shading",
-                        interactive=False,
-                        format="png",
-                        height=230,
-                        elem_id="shading",
-                    )
+                    photo = _layer_image("Photo: click an object to select it", "photo")
+                    reflectance = _layer_image("Reflectance", "reflectance")
+                    shading = _layer_image("Shading", "shading")
                 compare_view = gr.ImageSlider(
                     label="Before / after",
                     format="jpeg",  # sent at every slider move: encoded in 1 ms, PNG in 100

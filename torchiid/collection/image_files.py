@@ -19,6 +19,7 @@ from torchiid.core.stats import image_quantile
 from torchiid.io import save_image
 from torchiid.io.layers import ExtraOutputs, OutputSet, layer_file_names, write_layers
 from torchiid.params import Parameters
+from torchiid.pipeline.results import solve_record
 from torchiid.priors.shading_terms import pixel_confidence
 
 __all__ = ["output_names", "recorded", "write_outputs"]
@@ -94,11 +95,7 @@ def write_outputs(
         "method": settings.method,
         "working_size": list(reversed(result.working_size)) if result.working_size else None,
         "exif_orientation": getattr(loaded, "orientation", 1),
-        "albedo_quantile": params.output.albedo_quantile,
-        "albedo_excess": float(result.albedo_excess[0]),
-        "seconds": round(seconds, 3),
-        "converged": result.converged,
-        "solves": [str(r) for r in result.solves],
+        **solve_record(result, params, seconds),
         **extra,
         "files": {},
     }

@@ -10,7 +10,7 @@ import argparse
 import os
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 if TYPE_CHECKING:
     from torchiid.params import Parameters
@@ -32,6 +32,8 @@ DEVICES = ("auto", "cpu", "cuda")
 
 #: set to ``--threads`` before torch loads, so its OpenMP pool starts with that many threads
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+_N = TypeVar("_N", int, float)
 
 
 def _add_verbosity(p: argparse.ArgumentParser) -> None:
@@ -61,11 +63,16 @@ def verbosity_options() -> argparse.ArgumentParser:
     return p
 
 
-def _threads(text: str) -> int:
+def _number(text: str, kind: type[_N], what: str) -> _N:
+    """``text`` read as a ``kind``; otherwise argparse's error "not ``what``"."""
     try:
-        value = int(text)
+        return kind(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+        raise argparse.ArgumentTypeError(f"not {what}: {text!r}") from None
+
+
+def _threads(text: str) -> int:
+    value = _number(text, int, "a whole number")
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
     return value
@@ -104,10 +111,7 @@ def run_options() -> argparse.ArgumentParser:
 
 
 def _gigabytes(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number of GB: {text!r}") from None
+    value = _number(text, float, "a number of GB")
     if not 0 < value < float("inf"):
         raise argparse.ArgumentTypeError(f"must be a number of GB > 0, got {text}")
     return value

@@ -47,6 +47,16 @@ _SETTINGS_OPTIONS = (
     "redo",
 )
 
+#: the switches that write more files, in the order ``--help`` lists them
+_SAVE_OPTIONS = {
+    "--save-confidence": "also write <stem>-confidence.png (255: trusted colour, 0: dark or "
+    "clipped pixel)",
+    "--save-stage1": "also write the last Stage 1 reflectance <stem>-rho.exr (float, linear; "
+    "`torchiid edit --from` rebuilds it from the photo and <stem>-sigma.exr otherwise)",
+    "--save-npy": "also write float32 linear .npy arrays of reflectance and shading",
+    "--save-iterations": "write every iteration's sigma, rho, R, S (sRGB PNGs)",
+}
+
 
 def add_arguments(d: argparse.ArgumentParser) -> None:
     """The options of ``torchiid decompose``."""
@@ -81,27 +91,8 @@ def add_arguments(d: argparse.ArgumentParser) -> None:
         action="store_true",
         help="8/16-bit input files hold linear values (default: sRGB-encoded)",
     )
-    d.add_argument(
-        "--save-confidence",
-        action="store_true",
-        help="also write <stem>-confidence.png (255: trusted colour, 0: dark or clipped pixel)",
-    )
-    d.add_argument(
-        "--save-stage1",
-        action="store_true",
-        help="also write the last Stage 1 reflectance <stem>-rho.exr (float, linear; "
-        "`torchiid edit --from` rebuilds it from the photo and <stem>-sigma.exr otherwise)",
-    )
-    d.add_argument(
-        "--save-npy",
-        action="store_true",
-        help="also write float32 linear .npy arrays of reflectance and shading",
-    )
-    d.add_argument(
-        "--save-iterations",
-        action="store_true",
-        help="write every iteration's sigma, rho, R, S (sRGB PNGs)",
-    )
+    for option, text in _SAVE_OPTIONS.items():
+        d.add_argument(option, action="store_true", help=text)
     d.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     d.add_argument(
         "--retry-failed",

@@ -214,6 +214,7 @@ def run(args: argparse.Namespace) -> int:
     from torchiid.core.exceptions import ImageError, ParameterError, TorchiidError, one_line
     from torchiid.io import load_mask
     from torchiid.io.layers import OutputError, OutputSet, check_output_folder
+    from torchiid.pipeline.results import solve_record
     from torchiid.video.frames import list_images, open_frames
     from torchiid.video.temporal import VideoDecomposer
     from torchiid.video.write import (
@@ -314,12 +315,7 @@ def run(args: argparse.Namespace) -> int:
                     "motion_px": round(frame.motion, 3),
                     "features_reused": frame.features_reused,
                     "scale": frame.scale,
-                    "albedo_quantile": params.output.albedo_quantile,
-                    "albedo_excess": float(d.albedo_excess[0]),
-                    "seconds": round(seconds, 3),
-                    "times": {k: round(v, 4) for k, v in frame.times.items()},
-                    "converged": d.converged,
-                    "solves": [str(r) for r in d.solves],
+                    **solve_record(d, params, seconds, frame.times, places=4),
                     "parameters": PARAMS_NAME,
                 }
                 refl = d.reflectance[0].cpu()

@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar, TypeVar
 
 from torchiid.core.exceptions import ParameterError
 from torchiid.params.reflectance import ReflectanceParameters
@@ -30,6 +30,7 @@ __all__ = [
     "module_getattr",
     "shading_arguments",
     "reflectance_arguments",
+    "cache_in_options",
 ]
 
 #: each deprecated name -> what replaces it
@@ -54,21 +55,53 @@ def module_getattr(module: str, name: str) -> Any:
     return globals()[name]
 
 
-def _nonnegative(obj: object) -> None:
-    for f in dataclasses.fields(obj):  # type: ignore[arg-type]
-        value = getattr(obj, f.name)
-        if not value >= 0:
-            raise ParameterError(f"{type(obj).__name__}.{f.name} must be >= 0, got {value}")
-
-
 def _check_tau(tau: float) -> None:
     if not tau > 0:
         raise ParameterError(f"the schedule's tau must be > 0, got {tau}")
 
 
+_C = TypeVar("_C")
+_W = TypeVar("_W", bound="_Weights")
+_O = TypeVar("_O", bound="_Options")
+
+
+class _Weights:
+    """What both weight classes share: the checks, the τ schedule and the dict form."""
+
+    #: field -> its key in the group's ``weights()``; ``active`` reads these fields
+    _KEYS: ClassVar[dict[str, str]]
+    #: the fields multiplied by τ after each alternation; the others are divided by it
+    _GROWING: ClassVar[tuple[str, ...]]
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if not value >= 0:
+                raise ParameterError(f"{type(self).__name__}.{f.name} must be >= 0, got {value}")
+
+    @property
+    def active(self) -> bool:
+        """Whether any prior is on."""
+        return any(getattr(self, name) > 0 for name in self._KEYS)
+
+    def step(self: _W, tau: float) -> _W:
+        """The next alternation's weights (§3.4): the growing ones ``× τ``, the others ``/ τ``."""
+        _check_tau(tau)
+        values = dataclasses.asdict(self)
+        grown = {k: v * tau if k in self._GROWING else v / tau for k, v in values.items()}
+        return type(self)(**grown)
+
+    def as_dict(self) -> dict[str, float]:
+        """The weights as the group's ``weights()`` gives them."""
+        return {key: getattr(self, name) for name, key in self._KEYS.items()}
+
+
 @dataclass(frozen=True)
-class ShadingWeights:
-    """Deprecated: the weights of the shading priors (Eq. 1); 0 switches a prior off."""
+class ShadingWeights(_Weights):
+    """Deprecated: the weights of the shading priors (Eq. 1); 0 switches a prior off.
+
+    ``step``: global and mid-level ``× τ``, local ``/ τ``.
+    """
 
     lambda_c: float = 0.02
     lambda_p: float = 0.02
@@ -76,48 +109,65 @@ class ShadingWeights:
     lambda_l: float = 2.0
     lambda_s: float = 0.0
 
-    def __post_init__(self) -> None:
-        _nonnegative(self)
-
-    @property
-    def active(self) -> bool:
-        """Whether any prior is on."""
-        return any(getattr(self, f.name) > 0 for f in dataclasses.fields(self))
-
-    def step(self, tau: float) -> ShadingWeights:
-        """The next alternation's weights (§3.4): global and mid-level ``× τ``, local ``/ τ``."""
-        _check_tau(tau)
-        return ShadingWeights(
-            self.lambda_c * tau,
-            self.lambda_p * tau,
-            self.lambda_m * tau,
-            self.lambda_l / tau,
-            self.lambda_s / tau,
-        )
-
-    def as_dict(self) -> dict[str, float]:
-        """The weights as :meth:`ShadingParameters.weights` gives them."""
-        return {
-            "S_c": self.lambda_c,
-            "S_p": self.lambda_p,
-            "S_m": self.lambda_m,
-            "S_l": self.lambda_l,
-            "S_s": self.lambda_s,
-        }
-
-
-#: ShadingOptions field -> ShadingParameters field, where the names differ
-_SHADING_NAMES = {
-    "tol": "cg_tol",
-    "max_iter": "cg_max_iter",
-    "warm_max_iter": "warm_cg_max_iter",
-    "levels": "coarse_levels",
-    "preconditioner": "shading_preconditioner",
-}
+    _KEYS = {
+        "lambda_c": "S_c",
+        "lambda_p": "S_p",
+        "lambda_m": "S_m",
+        "lambda_l": "S_l",
+        "lambda_s": "S_s",
+    }
+    _GROWING = ("lambda_c", "lambda_p", "lambda_m")
 
 
 @dataclass(frozen=True)
-class ShadingOptions:
+class ReflectanceWeights(_Weights):
+    """Deprecated: the weights of the reflectance energy (Eq. 12); 0 switches a prior off.
+
+    ``active``: whether any sparsity prior is on; ``step``: mid-level, global, data ``× τ``,
+    local ``/ τ``.
+    """
+
+    gamma_l: float = 20.0
+    gamma_m: float = 20.0
+    gamma_g: float = 2.0
+    gamma_a: float = 1.0
+
+    _KEYS = {"gamma_l": "A", "gamma_m": "B", "gamma_g": "C"}
+    _GROWING = ("gamma_m", "gamma_g", "gamma_a")
+
+
+class _Options:
+    """What both option classes share: the group's checks and the conversions to and from it."""
+
+    #: the group these options convert to
+    _GROUP: ClassVar[type[ShadingParameters] | type[ReflectanceParameters]]
+    #: option -> the group's field, where the names differ
+    _NAMES: ClassVar[dict[str, str]]
+    #: the options that are not the group's: settings of the stage call
+    _SETTINGS: ClassVar[tuple[str, ...]]
+
+    def __post_init__(self) -> None:
+        self._group()  # the group's checks
+
+    def replace(self: _O, **changes: object) -> _O:
+        """A copy with some options changed."""
+        return dataclasses.replace(self, **changes)
+
+    def _group(self) -> Any:
+        values = dataclasses.asdict(self)
+        kept = {k: v for k, v in values.items() if k not in self._SETTINGS}
+        return self._GROUP(**{self._NAMES.get(k, k): v for k, v in kept.items()})
+
+    @classmethod
+    def _of(cls: type[_O], group: object, **settings: object) -> _O:
+        names = {f.name for f in dataclasses.fields(cls)}
+        back = {v: k for k, v in cls._NAMES.items()}
+        values = {back.get(k, k): v for k, v in dataclasses.asdict(group).items()}
+        return cls(**{k: v for k, v in values.items() if k in names}, **settings)
+
+
+@dataclass(frozen=True)
+class ShadingOptions(_Options):
     """Deprecated: the constants of the shading priors and the settings of their PCG solve."""
 
     t_c: float = 1e-4
@@ -145,72 +195,28 @@ class ShadingOptions:
     warn: bool = True
     preconditioner: str = "jacobi"
 
-    def __post_init__(self) -> None:
-        self.to_parameters()  # the group's checks
-
-    def replace(self, **changes: object) -> ShadingOptions:
-        """A copy with some options changed."""
-        return dataclasses.replace(self, **changes)
+    _GROUP = ShadingParameters
+    _NAMES = {
+        "tol": "cg_tol",
+        "max_iter": "cg_max_iter",
+        "warm_max_iter": "warm_cg_max_iter",
+        "levels": "coarse_levels",
+        "preconditioner": "shading_preconditioner",
+    }
+    _SETTINGS = ("seed", "warn")
 
     def to_parameters(self) -> ShadingParameters:
         """The same settings as a :class:`ShadingParameters` (without ``seed`` and ``warn``)."""
-        values = dataclasses.asdict(self)
-        del values["seed"], values["warn"]
-        return ShadingParameters(**{_SHADING_NAMES.get(k, k): v for k, v in values.items()})
+        return self._group()
 
     @classmethod
     def from_parameters(cls, group: ShadingParameters, seed: int, warn: bool) -> ShadingOptions:
         """The options of ``group``."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        back = {v: k for k, v in _SHADING_NAMES.items()}
-        values = {back.get(k, k): v for k, v in dataclasses.asdict(group).items()}
-        return cls(**{k: v for k, v in values.items() if k in names}, seed=seed, warn=warn)
+        return cls._of(group, seed=seed, warn=warn)
 
 
 @dataclass(frozen=True)
-class ReflectanceWeights:
-    """Deprecated: the weights of the reflectance energy (Eq. 12); 0 switches a prior off."""
-
-    gamma_l: float = 20.0
-    gamma_m: float = 20.0
-    gamma_g: float = 2.0
-    gamma_a: float = 1.0
-
-    def __post_init__(self) -> None:
-        _nonnegative(self)
-
-    @property
-    def active(self) -> bool:
-        """Whether any sparsity prior is on."""
-        return self.gamma_l > 0 or self.gamma_m > 0 or self.gamma_g > 0
-
-    def step(self, tau: float) -> ReflectanceWeights:
-        """The next alternation's weights (§3.4): mid-level, global, data ``× τ``, local ``/ τ``."""
-        _check_tau(tau)
-        return ReflectanceWeights(
-            self.gamma_l / tau, self.gamma_m * tau, self.gamma_g * tau, self.gamma_a * tau
-        )
-
-    def as_dict(self) -> dict[str, float]:
-        """The sparsity weights as :meth:`ReflectanceParameters.weights` gives them."""
-        return {"A": self.gamma_l, "B": self.gamma_m, "C": self.gamma_g}
-
-
-#: ReflectanceOptions field -> ReflectanceParameters field, where the names differ
-_REFLECTANCE_NAMES = {
-    "tol": "bregman_tol",
-    "max_outer": "bregman_iter",
-    "cg_tol": "bregman_cg_tol",
-    "cg_max_iter": "bregman_cg_iter",
-    "warm_state": "bregman_warm_state",
-    "gap_tol": "bregman_gap_tol",
-    "theta_floor": "bregman_theta_floor",
-    "eps": "shading_floor",
-}
-
-
-@dataclass(frozen=True)
-class ReflectanceOptions:
+class ReflectanceOptions(_Options):
     """Deprecated: the constants of the reflectance priors and their Split-Bregman settings."""
 
     theta: float = 40.0
@@ -231,29 +237,29 @@ class ReflectanceOptions:
     gap_tol: float = 0.0
     theta_floor: float = 1.0
 
-    def __post_init__(self) -> None:
-        self.to_parameters()  # the group's checks
-
-    def replace(self, **changes: object) -> ReflectanceOptions:
-        """A copy with some options changed."""
-        return dataclasses.replace(self, **changes)
+    _GROUP = ReflectanceParameters
+    _NAMES = {
+        "tol": "bregman_tol",
+        "max_outer": "bregman_iter",
+        "cg_tol": "bregman_cg_tol",
+        "cg_max_iter": "bregman_cg_iter",
+        "warm_state": "bregman_warm_state",
+        "gap_tol": "bregman_gap_tol",
+        "theta_floor": "bregman_theta_floor",
+        "eps": "shading_floor",
+    }
+    _SETTINGS = ("merge_stencil_terms", "track_objective")
 
     def to_parameters(self) -> ReflectanceParameters:
         """The same settings as a group (without ``merge_stencil_terms``, ``track_objective``)."""
-        values = dataclasses.asdict(self)
-        del values["merge_stencil_terms"], values["track_objective"]
-        return ReflectanceParameters(**{_REFLECTANCE_NAMES.get(k, k): v for k, v in values.items()})
+        return self._group()
 
     @classmethod
     def from_parameters(
         cls, group: ReflectanceParameters, track_objective: bool
     ) -> ReflectanceOptions:
         """The options of ``group``."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        back = {v: k for k, v in _REFLECTANCE_NAMES.items()}
-        values = {back.get(k, k): v for k, v in dataclasses.asdict(group).items()}
-        kept = {k: v for k, v in values.items() if k in names}
-        return cls(**kept, track_objective=track_objective)
+        return cls._of(group, track_objective=track_objective)
 
 
 def shading_arguments(
@@ -306,3 +312,14 @@ def reflectance_arguments(
         f"{function} takes a torchiid.params.ReflectanceParameters (params.reflectance), "
         f"got {type(reflectance).__name__}"
     )
+
+
+def cache_in_options(options: object, cache: _C | None, kind: type[_C]) -> tuple[object, _C | None]:
+    """``(options, cache)`` of a build call whose third argument may be its cache.
+
+    The new form passes the cache where the old one passed its options: ``(problem, group,
+    cache)``; a ``kind`` there, with no ``cache`` given, is the cache.
+    """
+    if isinstance(options, kind) and cache is None:
+        return None, options
+    return options, cache

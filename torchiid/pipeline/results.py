@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 
 from torchiid.features.semantic import SemanticFeatures
 from torchiid.params import Parameters
 
-__all__ = ["IterationLayers", "SolveReport", "Decomposition"]
+__all__ = ["IterationLayers", "SolveReport", "Decomposition", "solve_record"]
 
 
 @dataclass(frozen=True)
@@ -138,3 +139,28 @@ class Decomposition:
     def converged(self) -> bool:
         """Whether every solve reached its tolerance."""
         return all(r.converged for r in self.solves)
+
+
+def solve_record(
+    result: Decomposition,
+    params: Parameters,
+    seconds: float,
+    times: dict[str, float] | None = None,
+    places: int = 3,
+) -> dict[str, Any]:
+    """The fields of a ``-info.json`` record that tell how a decomposition went.
+
+    In this order: ``albedo_quantile``, ``albedo_excess`` (the first image's), ``seconds``,
+    ``times`` when given (each rounded to ``places`` decimals), ``converged`` and ``solves``
+    (the solvers' reports as text).
+    """
+    record: dict[str, Any] = {
+        "albedo_quantile": params.output.albedo_quantile,
+        "albedo_excess": float(result.albedo_excess[0]),
+        "seconds": round(seconds, 3),
+    }
+    if times is not None:
+        record["times"] = {k: round(v, places) for k, v in times.items()}
+    record["converged"] = result.converged
+    record["solves"] = [str(r) for r in result.solves]
+    return record

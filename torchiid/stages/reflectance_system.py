@@ -19,7 +19,7 @@ from torchiid.core.cache import InputKey, input_key
 from torchiid.core.check import check_finite, check_image, check_same_batch, check_shape
 from torchiid.core.exceptions import ShapeError
 from torchiid.params import ReflectanceParameters
-from torchiid.params.legacy import reflectance_arguments
+from torchiid.params.legacy import cache_in_options, reflectance_arguments
 from torchiid.priors import kernels
 from torchiid.priors.reflectance_terms import (
     COLOUR_WEIGHTS,
@@ -321,7 +321,6 @@ def build_reflectance_terms(
     Returns:
         :class:`ReflectanceTerms`.
     """
-    if isinstance(options, ReflectanceCache) and cache is None:
-        options, cache = None, options
+    options, cache = cache_in_options(options, cache, ReflectanceCache)
     group, weights, legacy = reflectance_arguments("build_reflectance_terms", reflectance, options)
     return assemble_reflectance_terms(problem, group, weights, cache, legacy.get("merge", merge))

@@ -152,24 +152,28 @@ def solve_shading(
     """
     group, weights, legacy = shading_arguments("solve_shading", shading, options)
     seed, warn = legacy.get("seed", seed), legacy.get("warn", warn)
-    return _solve(problem, group, weights, x0=x0, cache=cache, seed=seed, warn=warn)
+    return _solve(_Task(problem, group, weights, seed), x0=x0, cache=cache, warn=warn)
+
+
+@dataclass(frozen=True)
+class _Task:
+    """One system to solve: its tensors, parameters, each prior's weight and the LLE seed."""
+
+    problem: ShadingProblem
+    o: ShadingParameters
+    weights: Mapping[str, float]
+    seed: int
 
 
 def _solve(
-    problem: ShadingProblem,
-    o: ShadingParameters,
-    weights: Mapping[str, float],
-    *,
-    x0: torch.Tensor | None,
-    cache: ShadingSystemCache | None,
-    seed: int,
-    warn: bool,
+    task: _Task, *, x0: torch.Tensor | None, cache: ShadingSystemCache | None, warn: bool
 ) -> ShadingResult:
     """:func:`solve_shading` with each prior's weight given."""
     # a cache for this call alone when none is given: the coarse levels share its S_c
     # neighbourhood (everything else in it starts empty, as without one)
     cache = ShadingSystemCache() if cache is None else cache
-    built = assemble_shading_system(problem, o, weights, cache, seed)
+    problem, o = task.problem, task.o
+    built = assemble_shading_system(problem, o, task.weights, cache, task.seed)
     times = dict(built.times)
     image, mask = problem.image.contiguous(), problem.mask
     anchored = anchored_system(built.total, image, mask, o.anchor, o.dark_eps)
@@ -178,14 +182,14 @@ def _solve(
         max_iter = o.warm_cg_max_iter or o.cg_max_iter
     else:
         max_iter = o.cg_max_iter
-        x0 = _coarse_start(problem, o, weights, cache, seed, times)
+        x0 = _coarse_start(task, cache, times)
     start = _start(x0, anchored, image)
     t0 = time.perf_counter()
     res, precond, fresh = _pcg(
         anchored, start, o, precond, fresh, max_iter, built.total, mask, cache, times
     )
     if not res.converged:
-        res = _rescue(res, anchored, start, problem, o, weights, seed, max_iter, times)
+        res = _rescue(res, anchored, start, task, max_iter, times)
     sync(image.device)
     times["solve"] = time.perf_counter() - t0
     if fresh:
@@ -226,29 +230,24 @@ def _preconditioner(
 
 
 def _coarse_start(
-    problem: ShadingProblem,
-    o: ShadingParameters,
-    weights: Mapping[str, float],
-    cache: ShadingSystemCache,
-    seed: int,
-    times: dict[str, float],
+    task: _Task, cache: ShadingSystemCache, times: dict[str, float]
 ) -> torch.Tensor | None:
     """The cold start of a Jacobi solve: the half-size problem's ``s``, upsampled, or ``None``.
 
     The Jacobi-PCG iteration count on these near-binary weights is dominated by smooth error,
     which the coarse levels remove cheaply; a multigrid preconditioner removes it itself.
     """
-    h, w = problem.image.shape[-2:]
+    o = task.o
+    h, w = task.problem.image.shape[-2:]
     if o.shading_preconditioner != "jacobi" or o.coarse_levels <= 1 or min(h, w) < 2 * _MIN_COARSE:
         return None
+    coarse = dataclasses.replace(
+        task,
+        problem=coarse_problem(task.problem, o.base_sigma, o.base_mix),
+        o=o.replace(base_sigma=o.base_sigma / 2, base_mix=1.0, coarse_levels=o.coarse_levels - 1),
+    )
     sub = _solve(
-        coarse_problem(problem, o.base_sigma, o.base_mix),
-        o.replace(base_sigma=o.base_sigma / 2, base_mix=1.0, coarse_levels=o.coarse_levels - 1),
-        weights,
-        x0=None,
-        cache=ShadingSystemCache(neighbourhood=cache.neighbourhood),
-        seed=seed,
-        warn=False,
+        coarse, x0=None, cache=ShadingSystemCache(neighbourhood=cache.neighbourhood), warn=False
     )
     times["coarse"] = sum(sub.diagnostics.times.values())
     return F.interpolate(sub.log_shading, size=(h, w), mode="bilinear", align_corners=False)
@@ -306,10 +305,7 @@ def _rescue(
     res: PCGResult,
     anchored: AnchoredSystem,
     start: torch.Tensor,
-    problem: ShadingProblem,
-    o: ShadingParameters,
-    weights: Mapping[str, float],
-    seed: int,
+    task: _Task,
     max_iter: int,
     times: dict[str, float],
 ) -> PCGResult:
@@ -323,13 +319,14 @@ def _rescue(
     """
     matvec, rhs = anchored.matvec, anchored.rhs
     res_start = None  # the start's relative residual, once computed
+    o = task.o
     multigrid = o.shading_preconditioner != "jacobi"
-    if multigrid and problem.image.dtype == torch.float32:
+    if multigrid and task.problem.image.dtype == torch.float32:
         t1 = time.perf_counter()
         res_start = _relative_residual(matvec, rhs, start)
         better = _relative_residual(matvec, rhs, res.x) <= res_start
         restart = torch.where(better.view(-1, 1, 1, 1), res.x, start)
-        more = _solve_in_float64(problem, o, weights, seed, restart)
+        more = _solve_in_float64(task, restart)
         if more is not None:
             res = dataclasses.replace(more, iterations=res.iterations + more.iterations)
             times["float64"] = time.perf_counter() - t1
@@ -371,18 +368,13 @@ def _relative_residual(
     return torch.nan_to_num(r, nan=math.inf)
 
 
-def _solve_in_float64(
-    problem: ShadingProblem,
-    o: ShadingParameters,
-    weights: Mapping[str, float],
-    seed: int,
-    x0: torch.Tensor,
-) -> PCGResult | None:
+def _solve_in_float64(task: _Task, x0: torch.Tensor) -> PCGResult | None:
     """The same shading solve with every tensor in float64, from ``x0``.
 
     Returns the result in ``x0``'s dtype (its residual as float64 measures it: the float32
     product is what cannot resolve it), or ``None`` where float64 is not available (MPS).
     """
+    problem = task.problem
     if problem.image.device.type == "mps":
         return None
     changes = {
@@ -390,15 +382,10 @@ def _solve_in_float64(
         for f in dataclasses.fields(problem)
         if torch.is_tensor(v := getattr(problem, f.name)) and v.is_floating_point()
     }
-    sub = _solve(
-        dataclasses.replace(problem, **changes),
-        o.replace(warm_cg_max_iter=0),
-        weights,
-        x0=x0.to(torch.float64),
-        cache=None,
-        seed=seed,
-        warn=False,
+    in_float64 = dataclasses.replace(
+        task, problem=dataclasses.replace(problem, **changes), o=task.o.replace(warm_cg_max_iter=0)
     )
+    sub = _solve(in_float64, x0=x0.to(torch.float64), cache=None, warn=False)
     d = sub.diagnostics
     logger.info("shading solve redone in float64: %d iterations, residual %s",
                 d.iterations, d.residual.tolist())  # fmt: skip

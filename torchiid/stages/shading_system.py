@@ -37,7 +37,7 @@ from torchiid.core.cache import InputKey, input_key
 from torchiid.core.check import check_image, check_shape
 from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.params import ShadingParameters
-from torchiid.params.legacy import shading_arguments
+from torchiid.params.legacy import cache_in_options, shading_arguments
 from torchiid.priors.lle import LLENeighbourhood, lle_term
 from torchiid.priors.matting import matting_stencil, smooth_base
 from torchiid.priors.quadratic import QuadraticTerm, SumQuadratic
@@ -361,8 +361,7 @@ def build_shading_system(
     Returns:
         :class:`ShadingSystem`.
     """
-    if isinstance(options, ShadingSystemCache) and cache is None:
-        options, cache = None, options
+    options, cache = cache_in_options(options, cache, ShadingSystemCache)
     group, weights, legacy = shading_arguments("build_shading_system", shading, options)
     return assemble_shading_system(problem, group, weights, cache, legacy.get("seed", seed))
 
