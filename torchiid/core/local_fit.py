@@ -75,5 +75,6 @@ def local_linear_residual(
     ridge = 1e-10 * sigma**2 * mom["1"].clamp_min(1e-12)
     a = a + torch.diag_embed(torch.stack([torch.zeros_like(ridge), ridge, ridge], -1))
     a[..., 0, 0] = a[..., 0, 0].clamp_min(1e-12)
-    fit = torch.linalg.solve(a, rhs.unsqueeze(-1))[..., 0, 0]
-    return (x.double() - fit) * m
+    fit: torch.Tensor = torch.linalg.solve(a, rhs.unsqueeze(-1))[..., 0, 0]
+    residual: torch.Tensor = (x.double() - fit) * m
+    return residual
