@@ -56,9 +56,13 @@ STAGE0 = {
     "patch features": "CNN patch features",
     "proposals": "proposals (selective search)",
     "mid-level g": "PCA / mid-level features",
-    "segments": "segments",
+    "segments": "segments (beyond the proposals, which they overlap)",
 }
 REST = "inputs and full-resolution layers"
+WORKER_RSS = "peak memory, worker RSS (GB)"
+CUDA_PEAK = "peak CUDA memory allocated (GB)"
+CLI_WALL = "`torchiid decompose` process, wall s per photo"
+CLI_RSS = "`torchiid decompose` process, peak RSS (GB)"
 
 
 def _one(decomposition, i: int):
@@ -247,11 +251,11 @@ def table(results: dict, k: int) -> str:
     cells = {key: _cells(results[key], k) for key in columns}
     for (device, batch), cli in ((key[1:], v) for key, v in results.items() if key[0] == "cli"):
         cell = cells.setdefault((device, batch), {})
-        cell["`torchiid decompose` process, wall s per photo"] = f"{cli['seconds']:.2f}"
-        cell["`torchiid decompose` process, peak RSS (GB)"] = f"{cli['rss_mb'] / 1024:.2f}"
+        cell[CLI_WALL] = f"{cli['seconds']:.2f}"
+        cell[CLI_RSS] = f"{cli['rss_mb'] / 1024:.2f}"
     columns = list(dict.fromkeys([*columns, *cells]))
-    rows = list(dict.fromkeys(row for key in columns for row in cells[key]))
-    rows = [r for r in _rows(k) if r in rows] + [r for r in rows if r not in _rows(k)]
+    present = {row for key in columns for row in cells[key]}
+    rows = [r for r in [*_rows(k), WORKER_RSS, CUDA_PEAK, CLI_WALL, CLI_RSS] if r in present]
 
     def title(device: str, batch: int) -> str:
         return f"{device}, batch of 1" if batch == 1 else f"{device}, batch of {batch} (per photo)"
