@@ -40,8 +40,6 @@ def test_default_preset_differs_from_paper_only_where_tuned():
         "warm_cg_max_iter",
         "bregman_iter",
         "bregman_cg_iter",
-        "lambda_m",  # re-tuned with S_s
-        "lambda_s",  # S_s is not one of the paper's priors
         "t_e",  # nor is S_l's cut beside colour edges
         "base_mix",  # the matting base of later alternations mixes in the image
     }
@@ -148,7 +146,7 @@ def test_variants_switch_the_right_priors():
 def test_stage_groups_carry_switches_and_schedule():
     p = Parameters()
     sw, rw = p.shading.weights(), p.reflectance.weights()
-    assert sw == {"S_c": 0.02, "S_p": 0.02, "S_m": 0.01, "S_l": 2.0, "S_s": 0.01}
+    assert sw == {"S_c": 0.02, "S_p": 0.02, "S_m": 0.02, "S_l": 2.0, "S_s": 0.0}
     assert rw == {"A": 20.0, "B": 20.0, "C": 2.0} and p.reflectance.gamma_a == 1.0
     # switches are zero weights, in one place
     v1 = p.variant("v1").shading.weights()
@@ -159,15 +157,16 @@ def test_stage_groups_carry_switches_and_schedule():
     assert v4 == {"A": 20.0, "B": 0.0, "C": 0.0}
     # the §3.4 schedule: global, mid-level and data x tau, local / tau, per alternation
     assert p.alternation(1) == (p.shading, p.reflectance)
+    p = p.replace(lambda_s=0.01)  # S_s on, to see its schedule
     sh3, re3 = p.alternation(3)
     assert sh3.lambda_g == pytest.approx(0.02 * 1.44) and sh3.lambda_l == pytest.approx(2 / 1.44)
-    assert sh3.lambda_m == pytest.approx(0.01 * 1.44)
+    assert sh3.lambda_m == pytest.approx(0.02 * 1.44)
     assert sh3.lambda_s == pytest.approx(0.01 / 1.44)  # S_s is local, like S_l
     assert re3.gamma_l == pytest.approx(20 / 1.44) and re3.gamma_a == pytest.approx(1.44)
     assert re3.gamma_m == pytest.approx(20 * 1.44) and re3.gamma_g == pytest.approx(2 * 1.44)
     assert p.shading.step(1.2).step(1.2) == sh3
     # everything but the weights is as configured, switches included
-    assert sh3.replace(lambda_g=0.02, lambda_m=0.01, lambda_l=2.0, lambda_s=0.01) == p.shading
+    assert sh3.replace(lambda_g=0.02, lambda_m=0.02, lambda_l=2.0, lambda_s=0.01) == p.shading
     assert p.variant("v1").alternation(3)[0].weights()["S_c"] == 0.0
     with pytest.raises(ParameterError, match="tau must be > 0"):
         p.shading.step(0.0)

@@ -10,7 +10,7 @@ from torchiid.params import Parameters
 from torchiid.priors import PairL1Term, ReflectancePrior, ShadingPrior, reflectance_priors
 from torchiid.synthetic import mondrian
 
-PARAMS = Parameters().replace(patch_size=8, patch_stride=4)
+PARAMS = Parameters().replace(patch_size=8, patch_stride=4, lambda_s=0.01)  # S_s on too
 
 
 @pytest.fixture(scope="module")

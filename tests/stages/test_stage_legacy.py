@@ -68,7 +68,8 @@ def test_the_old_shading_calls_warn_and_solve_the_same_system():
         clip_level=0.0, base_mix=1.0, cg_tol=1e-9, cg_max_iter=500, warm_cg_max_iter=0,
         coarse_levels=2,
     )  # fmt: skip
-    assert old_o.to_parameters().replace(lambda_g=0.05, use_sc=False, lambda_m=0.0) == new
+    weights = {"lambda_g": 0.05, "use_sc": False, "lambda_m": 0.0, "lambda_s": 0.01}
+    assert old_o.to_parameters().replace(**weights) == new
     with pytest.warns(DeprecationWarning, match="solve_shading\\(problem, params.shading\\)"):
         old = solve_shading(problem, old_w, old_o)
     assert torch.equal(old.log_shading, solve_shading(problem, new).log_shading)

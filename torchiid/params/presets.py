@@ -7,8 +7,8 @@ __all__ = ["PRESETS", "VARIANTS", "ALL_ON"]
 #: Named parameter sets: name -> the flat parameters that differ from ``Parameters()``.
 #: The values' evidence (MIT-Berkeley scores, times) is in the documentation's Method page.
 PRESETS: dict[str, dict[str, Any]] = {
-    # tuned on the MIT-Berkeley objects for quality and speed: early-stopped solvers, S_s,
-    # S_l's cut beside colour edges and a mixed matting base (= Parameters())
+    # the paper's energy with two additions that hold in cross-validation (S_l's cut beside
+    # colour edges, a mixed matting base) and early-stopped solvers (= Parameters())
     "default": {},
     # printed matter (documents, labels, packaging, posters): S_l does not tie the pixels of
     # thin strokes either, so black text on white paper stays in the reflectance
@@ -53,6 +53,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "matting_eps": 3e-4,
         "lambda_m": 0.005,
         "lambda_s": 0.003,
+        "dark_level": 0.002,
+        "clip_level": 0.99,
     },
 }
 
