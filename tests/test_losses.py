@@ -15,7 +15,7 @@ from torchiid.model import decompose
 from torchiid.params import Parameters
 from torchiid.synthetic import mondrian
 
-PARAMS = Parameters().replace(patch_size=8, patch_stride=4)
+PARAMS = Parameters().replace(patch_size=8, patch_stride=4, lambda_s=0.01)  # S_s on too
 
 
 def test_gradcheck_float64_tiny():

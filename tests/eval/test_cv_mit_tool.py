@@ -31,7 +31,7 @@ def test_revert_list_finds_the_defaults_that_differ_from_the_paper(tool):
     for name, value in energy.items():
         assert default[name] != value
         assert name in tool.PAPER_OFF or paper[name] == value
-    assert {"lambda_m", "lambda_s", "t_e", "base_mix", "dark_level", "clip_level"} <= set(energy)
+    assert {"t_e", "base_mix", "dark_level", "clip_level"} <= set(energy)
     assert set(solver) == {"cg_max_iter", "warm_cg_max_iter", "bregman_iter", "bregman_cg_iter"}
     assert not set(energy) & set(tool.SOLVER_FIELDS)
     # the paper preset differs from itself only by the additions it leaves on
@@ -47,7 +47,7 @@ def test_revert_list_reads_given_values_and_rejects_unknown_names(tool):
 
 
 def test_revert_tests_and_table(tool):
-    base = Parameters()
+    base = Parameters().replace(lambda_s=0.01)
     tests = tool.revert_tests(base, {"lambda_s": 0.0, "t_e": 0.0}, {"cg_max_iter": 300})
     assert list(tests) == ["lambda_s", "t_e", "all of the above", "cg_max_iter (cap)"]
     assert tests["all of the above"] == {"lambda_s": 0.0, "t_e": 0.0}
@@ -71,7 +71,8 @@ def test_cache_keys_ignore_additions_that_are_off(tool):
     from torchiid.params import ADDED_SINCE
 
     default = tool.key_params(Parameters())
-    assert "lambda_s" in default  # on in the default: part of the key
+    assert "t_e" in default  # on in the default: part of the key
+    assert "lambda_s" not in default  # added in 0.10.0, off in the default
     flat, off = Parameters().to_dict(), {k: v for a in ADDED_SINCE.values() for k, v in a.items()}
     assert not {k for k, v in off.items() if flat[k] == v} & set(default)
     assert tool.key_params(Parameters().replace(t_x=0.05))["t_x"] == 0.05
@@ -94,7 +95,7 @@ def test_scores_are_cached_and_reused_features_give_fresh_results(tool, tmp_path
     first = score({}, "teabag2")
     assert score.features[next(iter(score.features))].similarity is None
     # S_m on: its similarity is computed and merged with the kept features
-    for changes in ({"use_sm": True}, {"use_sm": True, "lambda_s": 0.0}):
+    for changes in ({"use_sm": True}, {"use_sm": True, "lambda_s": 0.01}):
         got = score(changes, "teabag2")
         p = base.replace(**changes)
         out = decompose(sample.image[None], p, mask=sample.mask[None])

@@ -24,7 +24,7 @@ def photo_system():
     rgb = skimage_data.chelsea()
     img = torch.from_numpy(rgb).permute(2, 0, 1)[None].float() / 255
     img = F.interpolate(srgb_to_linear(img), size=(72, 96), mode="area")
-    p = Parameters()
+    p = Parameters().replace(lambda_s=0.01)  # S_s on: every shading term in the system
     f = semantic_features(img, p)
     problem = ShadingProblem(img, f.patch_centers, f.patch_features, f.similarity, None, None)
     o = p.shading

@@ -53,8 +53,6 @@ PRESETS: dict[str, dict[str, Any]] = {
         "matting_eps": 3e-4,
         "lambda_m": 0.005,
         "lambda_s": 0.003,
-        "dark_level": 0.002,
-        "clip_level": 0.99,
     },
 }
 

@@ -105,20 +105,22 @@ class ShadingParameters(ParameterGroup):
         1e-4, "intensities are clamped to at least this before taking logs", valid="> 0"
     )
     dark_level: float = param(
-        0.0,
+        0.002,
         "pixels whose brightest channel is below this linear value carry no information about "
-        "the shading: S_l asks for smooth shading there (confidence 1 at twice it; 0: off; "
-        "0.002 in the converged preset)",
+        "the shading: S_l asks for smooth shading there (confidence 1 at twice it; 0: off)",
         paper=0.0,
         valid=">= 0",
+        why="an input guard, not a tuned weight: black pixels otherwise get noisy or zero "
+        "shading; the MIT objects have none (off: -0.00013 in validation)",
     )
     clip_level: float = param(
-        0.0,
+        0.99,
         "likewise for pixels with a channel at or above this linear value in an image without "
-        "values above 1 (ramping in over the 0.03 below it; 0: off; 0.99 in the converged "
-        "preset)",
+        "values above 1 (ramping in over the 0.03 below it; 0: off)",
         paper=0.0,
         valid=">= 0",
+        why="an input guard for clipped highlights, which the MIT objects hardly have "
+        "(off: +0.000002 in validation)",
     )
     base_sigma: float = param(
         1.0,
