@@ -60,10 +60,12 @@ def test_every_step_is_measured_and_tabled(tool, tmp_path):
     for name in expected:
         assert name in rows, name
         values = [float(v) for v in re.findall(r"\| ([-\d.]+)", rows[name])]
-        assert len(values) == 2 and all(v > 0 for v in values), rows[name]
+        # the table rounds to milliseconds: a tiny photo's decode can print as 0.000
+        assert len(values) == 2 and all(v >= 0 for v in values), rows[name]
     assert "shading solve 2" not in rows
     for res in results.values():
         steps = res["steps"]
+        assert all(v > 0 for v in steps.values()), steps  # every step measured, unrounded
         parts = sum(v for k, v in steps.items() if k != "total")
         assert steps["total"] == pytest.approx(parts, rel=1e-9)  # one repeat: the parts add up
 
