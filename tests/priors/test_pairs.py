@@ -3,11 +3,6 @@ import torch
 
 from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.priors.pairs import PairSet
-from torchiid.priors.quadratic import (
-    DiagonalQuadratic,
-    StencilQuadratic,
-    SumQuadratic,
-)
 from torchiid.priors.stencil import Stencil
 
 
@@ -61,32 +56,3 @@ def test_pairset_errors():
     ps = PairSet(torch.tensor([[0], [1]]), torch.tensor([[1], [2]]), 4, 4)
     with pytest.raises(ShapeError, match="batch"):
         ps.apply(torch.zeros(3, 1, 4, 4))
-
-
-def test_sum_quadratic_merges_stencils_and_matches_sparse():
-    torch.manual_seed(3)
-    h, w = 4, 5
-    st = Stencil.square(h, w, 3)
-    t1 = StencilQuadratic(
-        st,
-        torch.rand(1, 4, h, w, dtype=torch.float64),
-        torch.randn(1, 4, h, w, dtype=torch.float64),
-    )
-    t2 = StencilQuadratic(st, torch.rand(1, 4, h, w, dtype=torch.float64))
-    t3 = DiagonalQuadratic(
-        torch.rand(1, 1, h, w, dtype=torch.float64), torch.randn(1, 1, h, w, dtype=torch.float64)
-    )
-    s = SumQuadratic([(2.0, t1), (0.5, t2), (3.0, t3), (1.0, None), (0.0, t2)])
-    assert len(s.terms) == 2  # the two stencil terms merged
-    a = (
-        2 * t1.to_sparse().to_dense()
-        + 0.5 * t2.to_sparse().to_dense()
-        + 3 * t3.to_sparse().to_dense()
-    )
-    x = torch.randn(1, 1, h, w, dtype=torch.float64)
-    torch.testing.assert_close(s.matvec(x).reshape(-1), a @ x.reshape(-1))
-    torch.testing.assert_close(s.to_sparse().to_dense(), a)
-    torch.testing.assert_close(s.diagonal().reshape(-1), a.diagonal())
-    torch.testing.assert_close(s.rhs(), 2 * t1.rhs() + 3 * t3.rhs())
-    with pytest.raises(ShapeError):
-        SumQuadratic([(1.0, None)])
