@@ -198,25 +198,7 @@ def test_list_file_masks_and_a_failure_into_an_existing_folder(library, tmp_path
     assert "cover-reflectance-linear16.png exists; pass --overwrite" in capsys.readouterr().err
 
 
-class _CountingOs:
-    """``os`` for :mod:`torchiid.collection.manifest`, counting the calls that touch the disk."""
-
-    def __init__(self):
-        self.calls = {"stat": 0, "listdir": 0}
-
-    def __getattr__(self, name):
-        real = getattr(os, name)
-        if name not in self.calls:
-            return real
-
-        def counted(*args, **kwargs):
-            self.calls[name] += 1
-            return real(*args, **kwargs)
-
-        return counted
-
-
-def test_the_skip_pass_is_linear_and_hashes_only_changed_files(tmp_path, monkeypatch):
+def test_the_skip_pass_is_linear_and_hashes_only_changed_files(tmp_path, monkeypatch, counting_os):
     import torchiid.collection.manifest as manifest
 
     n, folders = 120, ("", "a", "a/b")  # a third of the images in each output folder
@@ -242,7 +224,7 @@ def test_the_skip_pass_is_linear_and_hashes_only_changed_files(tmp_path, monkeyp
             result.sha256, result.size, result.mtime_ns = _sha(path), st.st_size, st.st_mtime_ns
             f.write(json.dumps(record_of(result, phash)) + "\n")
     items = unique_keys(list_inputs([src], recursive=True))
-    counting = _CountingOs()
+    counting = counting_os("stat", "listdir")  # the calls of torchiid.collection.manifest
     monkeypatch.setattr(manifest, "os", counting)
     decided = plan(items, Manifest(out / "manifest.jsonl"), phash, out=out)
     assert len(decided.done_before) == n and not decided.todo and decided.hashed == 0

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
@@ -129,33 +128,13 @@ def test_two_inputs_with_one_key_are_refused_repeats_dropped(library):
         unique_keys(list_inputs([a, b]))  # named on their own, both are IMG_0001
 
 
-class _CountingOs:
-    """``os`` for :mod:`torchiid.io.inputs`, counting the calls that touch the disk."""
-
-    COUNTED = ("scandir", "listdir", "stat", "lstat", "samefile")
-
-    def __init__(self):
-        self.calls = dict.fromkeys(self.COUNTED, 0)
-
-    def __getattr__(self, name):
-        real = getattr(os, name)
-        if name not in self.calls:
-            return real
-
-        def counted(*args, **kwargs):
-            self.calls[name] += 1
-            return real(*args, **kwargs)
-
-        return counted
-
-
-def test_a_large_folder_is_listed_in_one_pass(tmp_path, monkeypatch):
+def test_a_large_folder_is_listed_in_one_pass(tmp_path, monkeypatch, counting_os):
     folder = tmp_path / "many"
     folder.mkdir()
     n = 200  # the counts below do not grow with n: any n shows it
     for i in range(n):
         (folder / f"{i:05d}.jpg").write_bytes(b"")
-    counting = _CountingOs()
+    counting = counting_os("scandir", "listdir", "stat", "lstat", "samefile")  # torchiid.io.inputs
     monkeypatch.setattr(inputs, "os", counting)
     items = unique_keys(list_inputs([folder], recursive=True))
     assert len(items) == n and items[0].key == "00000"
