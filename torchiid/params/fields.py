@@ -16,11 +16,18 @@ meaning, range and history of tuning are stated once, next to it.
 
 import dataclasses
 import types
-from typing import Any
+from typing import Any, ClassVar
 
 from torchiid.core.exceptions import ParameterError
 
-__all__ = ["param", "check_fields", "ParameterGroup", "SCHEDULE_UP", "SCHEDULE_DOWN"]
+__all__ = [
+    "param",
+    "check_fields",
+    "ParameterGroup",
+    "StageGroup",
+    "SCHEDULE_UP",
+    "SCHEDULE_DOWN",
+]
 
 #: ``metadata["schedule"]`` of a weight multiplied by τ at each alternation
 SCHEDULE_UP = "× τ"
@@ -143,3 +150,29 @@ class ParameterGroup:
             elif rule == SCHEDULE_DOWN:
                 changes[f.name] = getattr(self, f.name) / tau
         return dataclasses.replace(self, **changes)
+
+
+@dataclasses.dataclass(frozen=True)
+class StageGroup(ParameterGroup):
+    """Base of the groups of the two stages, whose priors each have a weight and a switch."""
+
+    #: prior -> (its weight field, its switch field or ``None`` where it has none)
+    _PRIORS: ClassVar[dict[str, tuple[str, str | None]]]
+    #: the field that switches the whole stage
+    _STAGE: ClassVar[str]
+
+    def weights(self) -> dict[str, float]:
+        """Each prior's weight, by the prior's name.
+
+        0 where a switch turns the prior or the stage off: the one place the switches act.
+        """
+        on = getattr(self, self._STAGE)
+        return {
+            name: getattr(self, weight) if on and (switch is None or getattr(self, switch)) else 0.0
+            for name, (weight, switch) in self._PRIORS.items()
+        }
+
+    @property
+    def active(self) -> bool:
+        """Whether any prior is on (else the stage is skipped)."""
+        return any(w > 0 for w in self.weights().values())

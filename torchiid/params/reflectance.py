@@ -2,13 +2,13 @@
 
 import dataclasses
 
-from torchiid.params.fields import SCHEDULE_DOWN, SCHEDULE_UP, ParameterGroup, param
+from torchiid.params.fields import SCHEDULE_DOWN, SCHEDULE_UP, StageGroup, param
 
 __all__ = ["ReflectanceParameters"]
 
 
 @dataclasses.dataclass(frozen=True)
-class ReflectanceParameters(ParameterGroup):
+class ReflectanceParameters(StageGroup):
     """Stage 2: the weights and constants of Eq. 12, their switches, the Split-Bregman solve.
 
     :func:`~torchiid.stages.reflectance.solve_reflectance` takes this group as it is; at
@@ -114,19 +114,6 @@ class ReflectanceParameters(ParameterGroup):
         True, "switch of the whole stage (off: baseline 1)", paper=True, valid="true or false"
     )
 
-    def weights(self) -> dict[str, float]:
-        """Each sparsity prior's weight (``"A"``, ``"B"``, ``"C"``); the data term's is ``gamma_a``.
-
-        0 where a switch turns the prior or the stage off: the one place the switches act.
-        """
-        on = self.stage2
-        return {
-            "A": self.gamma_l if on and self.use_rl else 0.0,
-            "B": self.gamma_m if on and self.use_rm else 0.0,
-            "C": self.gamma_g if on and self.use_rg else 0.0,
-        }
-
-    @property
-    def active(self) -> bool:
-        """Whether any sparsity prior is on (else the stage is skipped)."""
-        return any(w > 0 for w in self.weights().values())
+    #: the sparsity priors of :meth:`weights`; the data term's weight is ``gamma_a``
+    _PRIORS = {"A": ("gamma_l", "use_rl"), "B": ("gamma_m", "use_rm"), "C": ("gamma_g", "use_rg")}
+    _STAGE = "stage2"

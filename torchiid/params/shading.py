@@ -2,13 +2,13 @@
 
 import dataclasses
 
-from torchiid.params.fields import SCHEDULE_DOWN, SCHEDULE_UP, ParameterGroup, param
+from torchiid.params.fields import SCHEDULE_DOWN, SCHEDULE_UP, StageGroup, param
 
 __all__ = ["ShadingParameters"]
 
 
 @dataclasses.dataclass(frozen=True)
-class ShadingParameters(ParameterGroup):
+class ShadingParameters(StageGroup):
     """Stage 1: the weights and constants of the shading priors, their switches, the PCG solve.
 
     :func:`~torchiid.stages.shading.solve_shading` takes this group as it is; at alternation
@@ -190,21 +190,12 @@ class ShadingParameters(ParameterGroup):
         valid="true or false",
     )
 
-    def weights(self) -> dict[str, float]:
-        """Each prior's weight (``"S_c"``, ``"S_p"``, ``"S_m"``, ``"S_l"``, ``"S_s"``).
-
-        0 where a switch turns the prior or the stage off: the one place the switches act.
-        """
-        on = self.stage1
-        return {
-            "S_c": self.lambda_g if on and self.use_sc else 0.0,
-            "S_p": self.lambda_g if on and self.use_sp else 0.0,
-            "S_m": self.lambda_m if on and self.use_sm else 0.0,
-            "S_l": self.lambda_l if on and self.use_sl else 0.0,
-            "S_s": self.lambda_s if on else 0.0,
-        }
-
-    @property
-    def active(self) -> bool:
-        """Whether any prior is on (else the stage is skipped)."""
-        return any(w > 0 for w in self.weights().values())
+    #: the priors of :meth:`weights`; ``S_c`` and ``S_p`` share ``lambda_g``
+    _PRIORS = {
+        "S_c": ("lambda_g", "use_sc"),
+        "S_p": ("lambda_g", "use_sp"),
+        "S_m": ("lambda_m", "use_sm"),
+        "S_l": ("lambda_l", "use_sl"),
+        "S_s": ("lambda_s", None),
+    }
+    _STAGE = "stage1"

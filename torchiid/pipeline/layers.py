@@ -85,18 +85,6 @@ def full_resolution_layers(
     Returns:
         :class:`FullLayers`.
     """
-    shading = _full_shading(image, shading_low, guide_low, mask, params)
-    return _albedo_scale(image, shading, mask, params.output)
-
-
-def _full_shading(
-    image: torch.Tensor,
-    shading_low: torch.Tensor,
-    guide_low: torch.Tensor | None,
-    mask: torch.Tensor | None,
-    params: Parameters,
-) -> torch.Tensor:
-    """Step 1 of :func:`full_resolution_layers`: the shading at the input's resolution."""
     b, _, big_h, big_w = image.shape
     floor, out = params.reflectance.shading_floor, params.output
     log_low = shading_low.clamp_min(floor).log()
@@ -113,7 +101,8 @@ def _full_shading(
         for rows in row_bands(big_h, big_w):
             band = up.band(rows, log_luminance(image[:, :, rows], params.shading.dark_eps))
             shading[:, :, rows] = band.exp_()
-    return shading.clamp_min_(floor)
+    shading.clamp_min_(floor)
+    return _albedo_scale(image, shading, mask, out)
 
 
 def _albedo_scale(
