@@ -395,3 +395,51 @@ def test_decompose_refuses_a_photo_over_the_memory_limit_and_restores_the_variab
     with pytest.raises(SystemExit) as stop:
         main(["decompose", str(photo / "cat.png"), "-o", str(out), "--memory-limit", "0"])
     assert stop.value.code == 2
+
+
+# ----------------------------------------------------------------------------- exit
+
+
+def _console(argv, code_before=""):
+    code = f"import sys\n{code_before}\nfrom torchiid.cli import console_main\nconsole_main()\n"
+    return subprocess.run(
+        [sys.executable, "-c", code, *argv], capture_output=True, text=True, cwd=ROOT
+    )
+
+
+def test_the_console_script_is_console_main():
+    text = (ROOT / "pyproject.toml").read_text()
+    assert 'torchiid = "torchiid.cli:console_main"' in text
+
+
+def test_the_console_script_keeps_the_status_and_every_line_it_printed(photo, tmp_path):
+    out = tmp_path / "out"
+    done = _console([*_argv("decompose", photo, out), *FAST])
+    assert done.returncode == 0, done.stderr
+    assert "1 done, 0 skipped, 0 failed" in done.stderr
+    assert (out / "manifest.jsonl").read_text().count("\n") == 1  # written and closed
+    missing = _console(["decompose", str(tmp_path / "no.png"), "-o", str(tmp_path / "o2")])
+    assert missing.returncode == 1
+    assert missing.stderr.endswith("torchiid: 1 of 1 input(s) failed\n")
+
+
+def test_the_console_script_waits_for_child_processes(tmp_path):
+    # a command that leaves a child running takes the ordinary exit, which joins it
+    flag = tmp_path / "child-finished"
+    before = f"""
+import multiprocessing, time
+import torchiid.cli as cli
+def child():
+    time.sleep(0.5)
+    open({str(flag)!r}, "w").close()
+def main():
+    multiprocessing.get_context("spawn").Process(target=child).start()
+    return 0
+cli.main = main
+"""
+    code = f"{before}\nif __name__ == '__main__':\n    cli.console_main()\n"
+    script = tmp_path / "script.py"
+    script.write_text(code)
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    assert flag.exists()

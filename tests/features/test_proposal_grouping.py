@@ -29,9 +29,7 @@ def test_leaf_boxes_of_blocks():
     seg = np.zeros((5, 7), dtype=np.int32)
     seg[1:4, 2:6] = 1
     seg[4, 6] = 2
-    np.testing.assert_array_equal(
-        leaf_boxes(seg, 3), [[0, 0, 7, 5], [2, 1, 6, 4], [6, 4, 7, 5]]
-    )
+    np.testing.assert_array_equal(leaf_boxes(seg, 3), [[0, 0, 7, 5], [2, 1, 6, 4], [6, 4, 7, 5]])
 
 
 def test_leaf_boxes_rejects_labels_out_of_range():

@@ -74,11 +74,9 @@ def leaf_boxes(seg: np.ndarray, n: int) -> np.ndarray:
             0, labels, coords, how, include_self=False
         )
 
-    box = torch.stack(
-        [extreme(xs, "amin"), extreme(ys, "amin"), extreme(xs, "amax") + 1, extreme(ys, "amax") + 1],
-        dim=1,
-    )
-    return box.numpy().astype(np.float64)
+    low = [extreme(xs, "amin"), extreme(ys, "amin")]
+    high = [extreme(xs, "amax") + 1, extreme(ys, "amax") + 1]
+    return torch.stack(low + high, dim=1).numpy().astype(np.float64)
 
 
 def group_regions(
