@@ -15,7 +15,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     "print": {"t_h": 0.5},
     # densely textured surfaces (tiles, wood grain, patterned fabric, fur): S_l takes its
     # targets from the image without its fine texture, so the texture stays in the reflectance
-    "texture": {"t_x": 0.05},
+    "texture": {"t_x": 0.02},
     # the paper's energy with the solvers at their most thorough
     "paper": {
         "base_mix": 1.0,

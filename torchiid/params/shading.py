@@ -91,7 +91,7 @@ class ShadingParameters(StageGroup):
         "texture deviation of S_l: where the image is densely textured (median fine-scale "
         "residual of log-intensity well above t_x), S_l takes its targets from the image "
         "without its fine texture, so texture of one hue stays in the reflectance (0: off; "
-        "0.05 in the texture preset)",
+        "0.02 in the texture preset)",
         paper=0.0,
         valid=">= 0",
     )
