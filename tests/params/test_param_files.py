@@ -62,9 +62,10 @@ def test_partial_json_keeps_base(tmp_path):
 @pytest.mark.parametrize("preset", ["default", "converged"])
 def test_a_file_written_before_the_groups_loads_unchanged(preset, caplog):
     # complete records written by the flat Parameters (no version): every value as written,
-    # and the one parameter added since (t_x) at the value that version ran, with a warning
+    # and the parameters added since (t_x, t_x_sigma) at the values that version ran, with a
+    # warning
     path = DATA / f"before-groups-{preset}-params.json"
-    expected = Parameters.preset(preset)
+    expected = Parameters.preset(preset).replace(t_x_sigma=3.0)
     if preset == "converged":
         expected = expected.replace(max_side=300)
     else:  # the values the default had when the file was written
@@ -74,7 +75,7 @@ def test_a_file_written_before_the_groups_loads_unchanged(preset, caplog):
         assert Parameters.from_json(path, base=Parameters.preset("texture")) == expected
     assert caplog.text.count("it names every parameter but t_x") == 2
     assert json.loads(path.read_text()) == {
-        k: v for k, v in expected.to_dict().items() if k != "t_x"
+        k: v for k, v in expected.to_dict().items() if k not in ("t_x", "t_x_sigma")
     }
 
 
@@ -98,7 +99,7 @@ def test_a_versioned_file_replays_what_its_version_ran(tmp_path, caplog):
     }  # fmt: skip
     assert set(later) == {
         "lambda_s", "t_e", "t_d", "t_h", "bregman_gap_tol", "bregman_theta_floor", "base_mix",
-        "t_x",
+        "t_x", "t_x_sigma",
     }  # fmt: skip
     assert p == base.replace(iterations=3, t_i=1.5, **later)
     assert (p.shading.base_mix, p.shading.lambda_s, p.reflectance.bregman_gap_tol) == (1.0, 0, 0)
@@ -111,7 +112,7 @@ def test_a_versioned_file_replays_what_its_version_ran(tmp_path, caplog):
     # "0.10.0" comes after "0.9.0" (as strings it would not): t_e is the file's base's
     path.write_text(json.dumps({"torchiid_version": "0.10.0"}))
     assert Parameters.from_json(path, base=base) == base.replace(
-        bregman_gap_tol=0.0, bregman_theta_floor=1.0, base_mix=1.0
+        bregman_gap_tol=0.0, bregman_theta_floor=1.0, base_mix=1.0, t_x_sigma=3.0
     )
     # a file of this version: nothing to replay, no warning
     caplog.clear()
@@ -181,3 +182,14 @@ def test_a_complete_file_without_a_version_replays_what_it_ran(tmp_path, caplog)
         path.write_text(json.dumps({"lambda_l": 0.5}))
         assert Parameters.from_json(path, base=base) == base.replace(lambda_l=0.5)
     assert caplog.text == ""
+
+
+def test_a_texture_file_of_1_0_0_replays_its_3_px_removal(tmp_path):
+    # 1.0.0 took the texture out of S_l's targets with a 3-px fit; its files keep it
+    path = tmp_path / "p.json"
+    old = Parameters.preset("texture").replace(t_x=0.05).to_dict()
+    del old["t_x_sigma"]
+    path.write_text(json.dumps({**old, "torchiid_version": "1.0.0"}))
+    p = Parameters.from_json(path)
+    assert (p.shading.t_x, p.shading.t_x_sigma) == (0.05, 3.0)
+    assert Parameters.preset("texture").shading.t_x_sigma == 5.0

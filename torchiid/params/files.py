@@ -35,6 +35,7 @@ ADDED_SINCE: dict[str, dict[str, Any]] = {
     "0.11.0": {"bregman_gap_tol": 0.0, "bregman_theta_floor": 1.0},
     "0.12.0": {"base_mix": 1.0},
     "1.0.0": {"t_x": 0.0},
+    "1.1.0": {"t_x_sigma": 3.0},
 }
 
 

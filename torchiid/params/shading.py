@@ -3,6 +3,7 @@
 import dataclasses
 
 from torchiid.params.fields import SCHEDULE_DOWN, SCHEDULE_UP, StageGroup, param
+from torchiid.priors.texture import REMOVAL_SIGMA
 
 __all__ = ["ShadingParameters"]
 
@@ -94,6 +95,16 @@ class ShadingParameters(StageGroup):
         "0.02 in the texture preset)",
         paper=0.0,
         valid=">= 0",
+    )
+    t_x_sigma: float = param(
+        REMOVAL_SIGMA,
+        "scale (px) of the local linear fit whose residual S_l's targets lose where t_x finds "
+        "texture: grain up to about 2.5·t_x_sigma px apart leaves them, light that bends more "
+        "slowly stays (only with t_x > 0)",
+        paper=None,
+        valid="> 0",
+        why="5: wood's rings, about 9 px apart, leave the targets (a 3-px fit kept a tenth of "
+        "them), while a hard shadow edge across the texture blurs less than at 8 px",
     )
     t_m: float = param(
         0.05, "deviation of S_m's weights on 1 - <g_i, g_j>", paper=0.05, valid="> 0"

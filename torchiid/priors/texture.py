@@ -48,7 +48,8 @@ from torchiid.core.local_fit import local_linear_residual
 
 __all__ = ["REMOVAL_SIGMA", "detexture", "texture_confidence"]
 
-#: scale (px) of the local linear fit whose residual :func:`detexture` takes out
+#: scale (px) of the local linear fit whose residual :func:`detexture` takes out (the
+#: parameter ``t_x_sigma``)
 REMOVAL_SIGMA = 5.0
 
 

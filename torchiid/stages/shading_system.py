@@ -289,10 +289,10 @@ def _local_makers(
         )
     if weights["S_l"] > 0:
         confident = o.dark_level > 0 or o.clip_level > 0
-        marks = (o.t_c, o.t_b, o.t_i, o.t_e, o.t_d, o.t_h, o.t_x)
+        marks = (o.t_c, o.t_b, o.t_i, o.t_e, o.t_d, o.t_h, o.t_x, o.t_x_sigma)
         makers["S_l"] = (
             lambda: retinex_term(
-                detexture(image, o.t_x, mask, o.dark_eps) if o.t_x > 0 else image,
+                detexture(image, o.t_x, mask, o.dark_eps, o.t_x_sigma) if o.t_x > 0 else image,
                 stencil, o.t_c, o.t_b, o.dark_eps, mask,
                 confidence=(
                     pixel_confidence(image, o.dark_level, o.clip_level) if confident else None
