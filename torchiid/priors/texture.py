@@ -16,25 +16,22 @@ window, which the median ignores; texture raises it over most of the window. Spa
 
 Two scales, one for each job. The *detection* is at 1 px: at that scale light has no
 variation of its own except at edges, which the median ignores, while a coarser fit also sees
-the curvature of soft shadows and the band beside a crease (at ``σ = 3`` px with a 17 px
-window, a crease of the test's box scores ``c`` 0.08 and a soft shadow 0.45 at ``t_x`` 0.05,
-against 0.99 at 1 px). Texture whose pattern is coarser than a pixel still has a fine part
-there: on the synthetic planes ``τ`` ≈ 0.02 in the tiles' speckle and 0.04 in wood (its
-streaks and the flanks of its rings), which ``t_x`` 0.02 (the ``texture`` preset) marks while
-smooth light, soft shadows and creases keep ``c`` ≥ 0.9 (at ``t_x`` 0.05 wood kept ``c`` ≈ 0.6).
+the curvature of soft shadows and the band beside a crease and takes them for texture.
+Texture whose pattern is coarser than a pixel still has a fine part there (speckle, streaks,
+the flanks of wood's rings), which a small ``t_x`` (the ``texture`` preset's) marks while
+smooth light, soft shadows and creases keep a confidence near 1.
 
 The *removal* is coarser: :func:`detexture` gives ``S_l`` the image without its fine texture
 where it is dense: each pixel's intensity is scaled by ``exp(−(1 − c_i) r'_i)``, ``r'`` the
 residual of the local linear fit at ``sigma`` px (chromaticity unchanged), so ``S_l``'s
 targets there follow the fit's differences, which keep the shading's gradients and curvature
 at larger scales, and the texture stays in ``ρ = I / σ``. The residual at ``σ`` passes a
-variation of period ``P`` with gain ``1 − exp(−2π²σ²/P²)``: at :data:`REMOVAL_SIGMA` = 5 px
-that is 0.998 for wood's rings on the 256 px planes (``P`` ≈ 9 px) and 0.89 for ``P`` = 15 px,
-where ``σ`` = 3 passes 0.89 and 0.55, so the 1-px detection also takes the coarser part of the
-same texture out. A coarser fit spreads a hard shadow's edge inside a texture further into the
-targets (mean log-shading error within 10 px of such an edge across wood 0.13 at 3 px, 0.17 at
-5, 0.23 at 8), which bounds ``sigma``. (A pixel confidence of ``S_l`` instead, which asks for
-equal shading at textured pairs, flattens the shading of textured curved surfaces as well.)
+variation of period ``P`` with gain ``1 − exp(−2π²σ²/P²)``, so the fit must be coarse enough
+to take out the whole of a pattern the 1-px detection marks (wood's rings, several pixels
+apart); a coarser fit also spreads a hard shadow's edge inside a texture further into the
+targets, which bounds ``sigma`` from above (the values and their measurements: the
+documentation's Method page). (A pixel confidence of ``S_l`` instead, which asks for equal
+shading at textured pairs, flattens the shading of textured curved surfaces as well.)
 """
 
 from __future__ import annotations
