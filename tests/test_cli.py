@@ -402,8 +402,10 @@ def test_decompose_refuses_a_photo_over_the_memory_limit_and_restores_the_variab
 
 def _console(argv, code_before=""):
     code = f"import sys\n{code_before}\nfrom torchiid.cli import console_main\nconsole_main()\n"
+    # Python's default buffering (a piped stdout holds its text until flushed)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
     return subprocess.run(
-        [sys.executable, "-c", code, *argv], capture_output=True, text=True, cwd=ROOT
+        [sys.executable, "-c", code, *argv], capture_output=True, text=True, cwd=ROOT, env=env
     )
 
 
@@ -440,6 +442,21 @@ cli.main = main
     code = f"{before}\nif __name__ == '__main__':\n    cli.console_main()\n"
     script = tmp_path / "script.py"
     script.write_text(code)
-    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, cwd=ROOT)
-    assert done.returncode == 0, done.stderr
-    assert flag.exists()
+    # no pipes: a child holding them would make run() wait for it whatever the parent does
+    done = subprocess.run(
+        [sys.executable, str(script)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        cwd=ROOT,
+        timeout=60,
+    )
+    assert done.returncode == 0
+    assert flag.exists()  # the parent ended after its child, not before
+
+
+def test_the_console_script_delivers_buffered_output_before_it_leaves():
+    # a piped stdout is block-buffered: what a command printed must still arrive
+    before = "import torchiid.cli as cli\ncli.main = lambda: (print('a table row'), 3)[1]"
+    done = _console([], before)
+    assert done.returncode == 3
+    assert done.stdout == "a table row\n"

@@ -173,8 +173,11 @@ def console_main() -> NoReturn:
     the interpreter's ordinary exit, which waits for them.
     """
     status = main()
-    sys.stdout.flush()
-    sys.stderr.flush()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe (``| head``): nothing left to deliver
+            pass
     logging.shutdown()
     children = sys.modules.get("multiprocessing")
     if children is not None and children.active_children():
