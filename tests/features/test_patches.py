@@ -94,6 +94,22 @@ def test_shapes_batch_determinism_and_backends(image, onnx_extractor):
     assert (out.features[0, 0] - out.features[1, 0]).abs().max() > 0.1
 
 
+def test_onnx_batch_runs_one_image_at_a_time_and_releases_the_arena_once(image, onnx_path):
+    calls = []
+
+    class Recording(OnnxFeatureExtractor):
+        def __call__(self, x, *, release_memory=True):
+            calls.append((x.shape[0], release_memory))
+            return super().__call__(x, release_memory=release_memory)
+
+    extractor = Recording(onnx_path)
+    batch = patch_features(image, onnx_extractor=extractor)
+    assert calls == [(1, False), (1, True)]
+    alone = [patch_features(image[i : i + 1], onnx_extractor=extractor) for i in range(2)]
+    expected = torch.cat([a.features for a in alone])
+    torch.testing.assert_close(batch.features, expected, atol=0, rtol=0)
+
+
 def test_crop_mode_matches_direct_computation(image, onnx_extractor):
     image = image[..., :60, :90]  # two patches per image
     grid = patch_grid(60, 90)

@@ -1,3 +1,5 @@
+import math
+
 import pytest
 import torch
 
@@ -94,6 +96,25 @@ def test_mask_drops_windows(image):
     torch.testing.assert_close(lap.matvec(x).reshape(-1), ref @ x.reshape(-1))
     # the pixel outside the mask is decoupled from everything
     assert float(ref[2 * 8 + 5].abs().max()) == 0.0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("sigma", [0.6, 1.0, 2.0])
+def test_smooth_base_matches_scipy_gaussian_filter(dtype, sigma):
+    from scipy.ndimage import gaussian_filter
+
+    x = torch.rand(2, 3, 13, 17, generator=torch.Generator().manual_seed(4), dtype=dtype)
+    radius = math.ceil(3 * sigma)
+    # torch's "reflect" padding leaves the edge pixel out, scipy's "mirror"
+    ref = gaussian_filter(x.double().numpy(), (0, 0, sigma, sigma), mode="mirror", radius=radius)
+    out = smooth_base(x, sigma)
+    assert out.dtype == dtype and out.shape == x.shape
+    tol = 1e-6 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(out.double(), torch.from_numpy(ref), atol=tol, rtol=0)
+    # the taps reach beyond a tiny image: replicate padding, still a normalised average
+    tiny = torch.rand(1, 3, 2, 3, dtype=dtype)
+    out = smooth_base(tiny, 1.0)
+    assert out.shape == tiny.shape and bool((out >= tiny.min()).all() & (out <= tiny.max()).all())
 
 
 def test_smooth_base_keeps_constants_and_errors():

@@ -147,7 +147,7 @@ def _shared(srgb: torch.Tensor, grid: PatchGrid, feature_map, scale: float) -> t
     x = srgb
     if (hs, ws) != (h, w):
         x = F.interpolate(srgb, size=(hs, ws), mode="bilinear", align_corners=False)
-    fmap = feature_map(x)  # (B, 1280, ceil(hs/32), ceil(ws/32))
+    fmap = _feature_map(x, feature_map)  # (B, 1280, ceil(hs/32), ceil(ws/32))
     # Pixel edge coordinate u of the input -> u * hs / h in the resized image -> feature-map
     # coordinate (cell j spans [j, j+1)): cell j is centred on resized pixel 32 j + offset.
     sy, sx = hs / h, ws / w
@@ -158,6 +158,19 @@ def _shared(srgb: torch.Tensor, grid: PatchGrid, feature_map, scale: float) -> t
     boxes = (b * scale_t - shift_t) / FEATURE_STRIDE + 0.5
     pooled = roi_align(fmap, boxes, _POOL_POINTS, sampling_ratio=1)  # (B, N, C, 4, 4)
     return pooled.mean(dim=(-2, -1))
+
+
+def _feature_map(x: torch.Tensor, feature_map) -> torch.Tensor:
+    """The CNN's feature map of a batch; through onnxruntime, one image at a time.
+
+    onnxruntime on the CPU gains nothing from a batch: the images' activations only make its
+    arena larger (and it is handed back after the last image), so a batch costs more time and
+    memory than its images one by one, with the same values.
+    """
+    if not isinstance(feature_map, OnnxFeatureExtractor) or x.shape[0] == 1:
+        return feature_map(x)
+    n = x.shape[0]
+    return torch.cat([feature_map(x[i : i + 1], release_memory=i == n - 1) for i in range(n)])
 
 
 def _crop(srgb: torch.Tensor, grid: PatchGrid, feature_map, batch_size: int) -> torch.Tensor:

@@ -113,16 +113,21 @@ def smooth_base(image: torch.Tensor, sigma: float = 1.0) -> torch.Tensor:
     r = max(1, math.ceil(3 * sigma))
     t = torch.arange(-r, r + 1, device=image.device, dtype=image.dtype)
     g = torch.exp(-(t**2) / (2 * sigma**2))
-    g = g / g.sum()
-    c = image.shape[1]
-    pad_h, pad_w = min(r, image.shape[-2] - 1), min(r, image.shape[-1] - 1)
-    x = image
-    if pad_h < r or pad_w < r:  # tiny images: fall back to replicate padding
-        x = F.pad(x, (r, r, r, r), mode="replicate")
-    else:
-        x = F.pad(x, (r, r, r, r), mode="reflect")
-    x = F.conv2d(x, g.view(1, 1, -1, 1).expand(c, 1, -1, 1).contiguous(), groups=c)
-    return F.conv2d(x, g.view(1, 1, 1, -1).expand(c, 1, 1, -1).contiguous(), groups=c)
+    taps = (g / g.sum()).tolist()
+    h, w = image.shape[-2:]
+    mode = "reflect" if r < min(h, w) else "replicate"  # tiny images: replicate padding
+    x = F.pad(image, (r, r, r, r), mode=mode)
+    # separable, as shifted sums of the padded image: a depthwise conv2d on the CPU is about
+    # ten times slower and, on a batch, builds large temporary buffers
+    return _taps(_taps(x, taps, -2, h), taps, -1, w)
+
+
+def _taps(x: torch.Tensor, taps: list[float], dim: int, size: int) -> torch.Tensor:
+    """``Σ_k taps[k] · x[k : k + size]`` along ``dim``."""
+    out = x.narrow(dim, 0, size) * taps[0]
+    for k in range(1, len(taps)):
+        out.add_(x.narrow(dim, k, size), alpha=taps[k])
+    return out
 
 
 class MattingQuadratic(QuadraticTerm):
