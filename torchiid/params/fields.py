@@ -22,6 +22,7 @@ from torchiid.core.exceptions import ParameterError
 
 __all__ = [
     "param",
+    "switch",
     "check_fields",
     "ParameterGroup",
     "StageGroup",
@@ -53,6 +54,15 @@ def param(
             raise ValueError(f"schedule must be {SCHEDULE_UP!r} or {SCHEDULE_DOWN!r}")
         metadata["schedule"] = schedule
     return dataclasses.field(default=default, metadata=metadata)
+
+
+def switch(what: str, note: str = "ablations") -> Any:
+    """The field of a switch of ``what`` (a prior or a whole stage): on, as in the paper.
+
+    Every switch is this one declaration, so the ablations and baselines turn the method's
+    parts off alike; ``note`` says what turning it off gives.
+    """
+    return param(True, f"switch of {what} ({note})", paper=True, valid="true or false")
 
 
 # valid text -> (test, what the error message says the value must be); a ``valid`` text may

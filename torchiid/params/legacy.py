@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from dataclasses import dataclass
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar, Generic, TypeVar, cast
 
 from torchiid.core.exceptions import ParameterError
 from torchiid.params.reflectance import ReflectanceParameters
@@ -62,7 +62,8 @@ def _check_tau(tau: float) -> None:
 
 _C = TypeVar("_C")
 _W = TypeVar("_W", bound="_Weights")
-_O = TypeVar("_O", bound="_Options")
+_O = TypeVar("_O", bound="_Options[Any]")
+_G = TypeVar("_G", ShadingParameters, ReflectanceParameters)
 
 
 class _Weights:
@@ -136,27 +137,42 @@ class ReflectanceWeights(_Weights):
     _GROWING = ("gamma_m", "gamma_g", "gamma_a")
 
 
-class _Options:
-    """What both option classes share: the group's checks and the conversions to and from it."""
+class _Options(Generic[_G]):
+    """What both option classes share.
 
-    #: the group these options convert to
+    The group's checks, the conversions to and from the group, and the tables by which
+    :func:`_stage_arguments` reads an old stage call that takes them.
+    """
+
+    #: the group these options convert to, and the ``Parameters`` attribute that holds it
     _GROUP: ClassVar[type[ShadingParameters] | type[ReflectanceParameters]]
+    _ATTRIBUTE: ClassVar[str]
+    #: the weights these options go with in the old stage calls
+    _WEIGHTS: ClassVar[type[_Weights]]
+    #: the weights' fields the group holds: weights of no prior, so not in ``as_dict()``
+    _CARRIED: ClassVar[tuple[str, ...]]
     #: option -> the group's field, where the names differ
     _NAMES: ClassVar[dict[str, str]]
-    #: the options that are not the group's: settings of the stage call
-    _SETTINGS: ClassVar[tuple[str, ...]]
+    #: the options that are not the group's but settings of the stage call -> the call's keyword
+    _SETTINGS: ClassVar[dict[str, str]]
 
     def __post_init__(self) -> None:
-        self._group()  # the group's checks
+        self.to_parameters()  # the group's checks
 
     def replace(self: _O, **changes: object) -> _O:
         """A copy with some options changed."""
         return dataclasses.replace(self, **changes)
 
-    def _group(self) -> Any:
+    def to_parameters(self) -> _G:
+        """The same settings as the stage's parameter group, without the stage call's settings.
+
+        ``ShadingOptions`` give a :class:`ShadingParameters` (without ``seed`` and ``warn``),
+        ``ReflectanceOptions`` a :class:`ReflectanceParameters` (without
+        ``merge_stencil_terms`` and ``track_objective``).
+        """
         values = dataclasses.asdict(self)
         kept = {k: v for k, v in values.items() if k not in self._SETTINGS}
-        return self._GROUP(**{self._NAMES.get(k, k): v for k, v in kept.items()})
+        return cast(_G, self._GROUP(**{self._NAMES.get(k, k): v for k, v in kept.items()}))
 
     @classmethod
     def _of(cls: type[_O], group: object, **settings: object) -> _O:
@@ -167,7 +183,7 @@ class _Options:
 
 
 @dataclass(frozen=True)
-class ShadingOptions(_Options):
+class ShadingOptions(_Options[ShadingParameters]):
     """Deprecated: the constants of the shading priors and the settings of their PCG solve."""
 
     t_c: float = 1e-4
@@ -196,6 +212,9 @@ class ShadingOptions(_Options):
     preconditioner: str = "jacobi"
 
     _GROUP = ShadingParameters
+    _ATTRIBUTE = "shading"
+    _WEIGHTS = ShadingWeights
+    _CARRIED = ()
     _NAMES = {
         "tol": "cg_tol",
         "max_iter": "cg_max_iter",
@@ -203,11 +222,7 @@ class ShadingOptions(_Options):
         "levels": "coarse_levels",
         "preconditioner": "shading_preconditioner",
     }
-    _SETTINGS = ("seed", "warn")
-
-    def to_parameters(self) -> ShadingParameters:
-        """The same settings as a :class:`ShadingParameters` (without ``seed`` and ``warn``)."""
-        return self._group()
+    _SETTINGS = {"seed": "seed", "warn": "warn"}
 
     @classmethod
     def from_parameters(cls, group: ShadingParameters, seed: int, warn: bool) -> ShadingOptions:
@@ -216,7 +231,7 @@ class ShadingOptions(_Options):
 
 
 @dataclass(frozen=True)
-class ReflectanceOptions(_Options):
+class ReflectanceOptions(_Options[ReflectanceParameters]):
     """Deprecated: the constants of the reflectance priors and their Split-Bregman settings."""
 
     theta: float = 40.0
@@ -238,6 +253,9 @@ class ReflectanceOptions(_Options):
     theta_floor: float = 1.0
 
     _GROUP = ReflectanceParameters
+    _ATTRIBUTE = "reflectance"
+    _WEIGHTS = ReflectanceWeights
+    _CARRIED = ("gamma_a",)
     _NAMES = {
         "tol": "bregman_tol",
         "max_outer": "bregman_iter",
@@ -248,11 +266,7 @@ class ReflectanceOptions(_Options):
         "theta_floor": "bregman_theta_floor",
         "eps": "shading_floor",
     }
-    _SETTINGS = ("merge_stencil_terms", "track_objective")
-
-    def to_parameters(self) -> ReflectanceParameters:
-        """The same settings as a group (without ``merge_stencil_terms``, ``track_objective``)."""
-        return self._group()
+    _SETTINGS = {"merge_stencil_terms": "merge", "track_objective": "track_objective"}
 
     @classmethod
     def from_parameters(
@@ -260,6 +274,33 @@ class ReflectanceOptions(_Options):
     ) -> ReflectanceOptions:
         """The options of ``group``."""
         return cls._of(group, track_objective=track_objective)
+
+
+def _stage_arguments(
+    function: str, first: object, options: object, kind: type[_Options[Any]]
+) -> tuple[Any, dict[str, float], dict[str, Any]]:
+    """``(group, weights, settings)`` of a call of the stage function ``function``.
+
+    The new form is ``(group, None)``; the old one ``(weights, options)``, with options of
+    ``kind``, warns (at the stage function's caller) and gives the options that are settings
+    of the call in ``settings``, under the call's keywords.
+    """
+    group_name = f"torchiid.params.{kind._GROUP.__name__}"
+    attribute = f"params.{kind._ATTRIBUTE}"
+    if isinstance(first, kind._GROUP) and options is None:
+        return first, first.weights(), {}
+    if isinstance(first, kind._WEIGHTS) and isinstance(options, kind):
+        deprecated(
+            f"{function}(problem, {kind._WEIGHTS.__name__}, {kind.__name__})",
+            f"{function}(problem, {attribute}) with a {group_name}",
+            stacklevel=5,
+        )
+        carried = {name: getattr(first, name) for name in kind._CARRIED}
+        settings = {key: getattr(options, name) for name, key in kind._SETTINGS.items()}
+        return options.to_parameters().replace(**carried), first.as_dict(), settings
+    raise ParameterError(
+        f"{function} takes a {group_name} ({attribute}), got {type(first).__name__}"
+    )
 
 
 def shading_arguments(
@@ -270,20 +311,7 @@ def shading_arguments(
     The new form is ``(ShadingParameters, None)``; the old one ``(ShadingWeights,
     ShadingOptions)`` warns and gives its ``seed`` and ``warn`` in ``settings``.
     """
-    if isinstance(shading, ShadingParameters) and options is None:
-        return shading, shading.weights(), {}
-    if isinstance(shading, ShadingWeights) and isinstance(options, ShadingOptions):
-        deprecated(
-            f"{function}(problem, ShadingWeights, ShadingOptions)",
-            f"{function}(problem, params.shading) with a torchiid.params.ShadingParameters",
-            stacklevel=4,
-        )
-        settings = {"seed": options.seed, "warn": options.warn}
-        return options.to_parameters(), shading.as_dict(), settings
-    raise ParameterError(
-        f"{function} takes a torchiid.params.ShadingParameters (params.shading), "
-        f"got {type(shading).__name__}"
-    )
+    return _stage_arguments(function, shading, options, ShadingOptions)
 
 
 def reflectance_arguments(
@@ -294,24 +322,7 @@ def reflectance_arguments(
     The new form is ``(ReflectanceParameters, None)``; the old one ``(ReflectanceWeights,
     ReflectanceOptions)`` warns and gives ``merge`` and ``track_objective`` in ``settings``.
     """
-    if isinstance(reflectance, ReflectanceParameters) and options is None:
-        return reflectance, reflectance.weights(), {}
-    if isinstance(reflectance, ReflectanceWeights) and isinstance(options, ReflectanceOptions):
-        deprecated(
-            f"{function}(problem, ReflectanceWeights, ReflectanceOptions)",
-            f"{function}(problem, params.reflectance) with a torchiid.params.ReflectanceParameters",
-            stacklevel=4,
-        )
-        group = options.to_parameters().replace(gamma_a=reflectance.gamma_a)
-        settings = {
-            "merge": options.merge_stencil_terms,
-            "track_objective": options.track_objective,
-        }
-        return group, reflectance.as_dict(), settings
-    raise ParameterError(
-        f"{function} takes a torchiid.params.ReflectanceParameters (params.reflectance), "
-        f"got {type(reflectance).__name__}"
-    )
+    return _stage_arguments(function, reflectance, options, ReflectanceOptions)
 
 
 def cache_in_options(options: object, cache: _C | None, kind: type[_C]) -> tuple[object, _C | None]:

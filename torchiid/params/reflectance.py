@@ -2,7 +2,7 @@
 
 import dataclasses
 
-from torchiid.params.fields import SCHEDULE_DOWN, SCHEDULE_UP, StageGroup, param
+from torchiid.params.fields import SCHEDULE_DOWN, SCHEDULE_UP, StageGroup, param, switch
 
 __all__ = ["ReflectanceParameters"]
 
@@ -107,12 +107,10 @@ class ReflectanceParameters(StageGroup):
         "stays finite)",
         valid="> 0",
     )
-    use_rl: bool = param(True, "switch of A, R_l (ablations)", paper=True, valid="true or false")
-    use_rm: bool = param(True, "switch of B, R_m (ablations)", paper=True, valid="true or false")
-    use_rg: bool = param(True, "switch of C, R_g (ablations)", paper=True, valid="true or false")
-    stage2: bool = param(
-        True, "switch of the whole stage (off: baseline 1)", paper=True, valid="true or false"
-    )
+    use_rl: bool = switch("A, R_l")
+    use_rm: bool = switch("B, R_m")
+    use_rg: bool = switch("C, R_g")
+    stage2: bool = switch("the whole stage", "off: baseline 1")
 
     #: the sparsity priors of :meth:`weights`; the data term's weight is ``gamma_a``
     _PRIORS = {"A": ("gamma_l", "use_rl"), "B": ("gamma_m", "use_rm"), "C": ("gamma_g", "use_rg")}

@@ -2,7 +2,7 @@
 
 import dataclasses
 
-from torchiid.params.fields import SCHEDULE_DOWN, SCHEDULE_UP, StageGroup, param
+from torchiid.params.fields import SCHEDULE_DOWN, SCHEDULE_UP, StageGroup, param, switch
 from torchiid.priors.texture import REMOVAL_SIGMA
 
 __all__ = ["ShadingParameters"]
@@ -190,16 +190,11 @@ class ShadingParameters(StageGroup):
         "'amg' (pyamg, CPU)",
         valid="one of jacobi, multigrid, amg",
     )
-    use_sc: bool = param(True, "switch of S_c (ablations)", paper=True, valid="true or false")
-    use_sp: bool = param(True, "switch of S_p (ablations)", paper=True, valid="true or false")
-    use_sm: bool = param(True, "switch of S_m (ablations)", paper=True, valid="true or false")
-    use_sl: bool = param(True, "switch of S_l (ablations)", paper=True, valid="true or false")
-    stage1: bool = param(
-        True,
-        "switch of the whole stage (off: baselines 2 and 3)",
-        paper=True,
-        valid="true or false",
-    )
+    use_sc: bool = switch("S_c")
+    use_sp: bool = switch("S_p")
+    use_sm: bool = switch("S_m")
+    use_sl: bool = switch("S_l")
+    stage1: bool = switch("the whole stage", "off: baselines 2 and 3")
 
     #: the priors of :meth:`weights`; ``S_c`` and ``S_p`` share ``lambda_g``
     _PRIORS = {

@@ -294,7 +294,7 @@ def _stroke_height(logp: torch.Tensor, mask: torch.Tensor | None) -> torch.Tenso
     return F.max_pool2d(F.pad(height, (1, 1, 1, 1), mode="replicate"), 3, 1)
 
 
-def _retinex_factors(
+def _retinex_pairs(
     image: torch.Tensor,
     stencil: Stencil,
     t_c: float,
@@ -303,10 +303,19 @@ def _retinex_factors(
     t_i: float,
     t_e: float,
     mask: torch.Tensor | None,
-    t_d: float = 0.0,
-    t_h: float = 0.0,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``S_l``'s colour factor (chromaticity, intensity, edge) and dark factor per pair."""
+    t_d: float,
+    t_h: float,
+    confidence: torch.Tensor | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``S_l``'s pair weights ``w^l``, their colour factor ``f'`` and the trusted share of it.
+
+    :func:`retinex_weights` and :func:`retinex_term` both weigh the pairs with this ``w^l``.
+    Under a pixel ``confidence`` each pair mixes two asks: with ``c_ij = min(c_i, c_j)`` its
+    own (colour factor ``f``: chromaticity, intensity, edge; its target difference) and with
+    ``1 - c_ij`` smooth shading (factor 1, target 0). ``f' = c_ij f + 1 - c_ij``, the trusted
+    share is ``c_ij f`` (both ``f`` without a confidence), and the pair's target is its
+    difference times their ratio (the weighted mean of the two targets).
+    """
     if t_c <= 0 or t_b <= 0:
         raise ParameterError(f"t_c and t_b must be > 0, got t_c={t_c}, t_b={t_b}")
     if min(t_i, t_e, t_d, t_h) < 0:
@@ -326,24 +335,12 @@ def _retinex_factors(
     if t_e > 0 or t_d > 0 or t_h > 0:
         marks = edge_confidence(image, t_e, dark_eps, mask, t_d, t_h)
         colour = colour * pair_confidence(stencil, marks)
-    return colour, dark
-
-
-def _with_confidence(
-    colour: torch.Tensor, stencil: Stencil, confidence: torch.Tensor | None
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``S_l``'s colour factor under a pixel confidence, and the share of it that is trusted.
-
-    Each pair mixes two asks: with ``c_ij = min(c_i, c_j)`` its own (factor ``f``, its target
-    difference) and with ``1 - c_ij`` smooth shading (factor 1, target 0). Returns the summed
-    factor ``c_ij f + 1 - c_ij`` and ``c_ij f``; the pair's target is its difference times
-    their ratio (the weighted mean of the two targets).
-    """
-    if confidence is None:
-        return colour, colour
-    c = pair_confidence(stencil, confidence).clamp(0, 1)
-    trusted = c * colour
-    return trusted + (1 - c), trusted
+    trusted = colour
+    if confidence is not None:
+        c = pair_confidence(stencil, confidence).clamp(0, 1)
+        trusted = c * colour
+        colour = trusted + (1 - c)
+    return colour * dark * stencil.valid.to(colour.device, colour.dtype), colour, trusted
 
 
 def retinex_weights(
@@ -375,10 +372,8 @@ def retinex_weights(
     becomes ``c_ij * factor + (1 - c_ij)``: a pair without trustworthy colours (dark or
     clipped) is not cut apart by its noisy colour.
     """
-    colour, dark = _retinex_factors(image, stencil, t_c, t_b, dark_eps, t_i, t_e, mask, t_d, t_h)
-    colour, _ = _with_confidence(colour, stencil, confidence)
-    w = colour * dark
-    return w * stencil.valid.to(w.device, w.dtype)
+    pairs = _retinex_pairs(image, stencil, t_c, t_b, dark_eps, t_i, t_e, mask, t_d, t_h, confidence)
+    return pairs[0]
 
 
 def pair_confidence(stencil: Stencil, confidence: torch.Tensor) -> torch.Tensor:
@@ -435,15 +430,15 @@ def retinex_term(
             f"image is {tuple(image.shape[-2:])} but the stencil is "
             f"{(stencil.height, stencil.width)}"
         )
-    colour, dark = _retinex_factors(image, stencil, t_c, t_b, dark_eps, t_i, t_e, mask, t_d, t_h)
+    w, colour, trusted = _retinex_pairs(
+        image, stencil, t_c, t_b, dark_eps, t_i, t_e, mask, t_d, t_h, confidence
+    )
     logp = intensity(image, dark_eps).log()
     target = stencil.apply(logp)[:, 0]
     if confidence is not None:
         # the weighted mean of the pair's own target and smooth shading's 0: a pair its colour
         # cuts (f = 0) asks for no share of the intensity step
-        colour, trusted = _with_confidence(colour, stencil, confidence)
         target = target * trusted / colour.clamp_min(torch.finfo(colour.dtype).tiny)
-    w = colour * dark * stencil.valid.to(colour.device, colour.dtype)
     pm = pair_mask(stencil, mask, w.dtype)
     if pm is not None:
         w = w * pm
