@@ -16,7 +16,6 @@ Every parameter also has a flat name, the same in every group (``lambda_l`` is
 import dataclasses
 import json
 import sys
-import warnings
 from pathlib import Path
 from typing import Any
 
@@ -57,9 +56,9 @@ class Parameters:
 
     Construction takes the groups, the schedule fields or flat names, which change the
     corresponding group field: ``Parameters(lambda_l=1.0)`` equals
-    ``Parameters(shading=ShadingParameters(lambda_l=1.0))``. Reading a grouped parameter by
-    its flat name (``params.lambda_l``) still works but is deprecated: read
-    ``params.shading.lambda_l``.
+    ``Parameters(shading=ShadingParameters(lambda_l=1.0))``. A grouped parameter is read
+    from its group (``params.shading.lambda_l``); its flat name as an attribute raises an
+    ``AttributeError`` naming the group.
 
     Raises:
         ParameterError: an unknown name, a value of the wrong type or out of range (the
@@ -116,16 +115,10 @@ class Parameters:
             raise ParameterError("at least one of stage1 and stage2 must be on")
 
     def __getattr__(self, name: str) -> Any:
-        # only called when the normal lookup fails: the deprecated flat reads
+        # only called when the normal lookup fails: a grouped parameter's flat name (removed)
         group = FLAT_NAMES.get(name)
-        if group is None:
-            raise AttributeError(f"'Parameters' object has no attribute {name!r}")
-        warnings.warn(
-            f"Parameters.{name} is deprecated; use params.{group}.{name}",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return getattr(object.__getattribute__(self, group), name)
+        where = f"; read params.{group}.{name}" if group is not None else ""
+        raise AttributeError(f"'Parameters' object has no attribute {name!r}{where}")
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -228,38 +221,6 @@ class Parameters:
         if path is not None:
             files.write_text(path, text)
         return text
-
-    # ------------------------------------------------------------------ deprecated
-    def shading_weights(self, alternation: int = 1) -> Any:
-        """Deprecated: use :meth:`alternation` (``params.alternation(k)[0].weights()``)."""
-        from torchiid.params.legacy import ShadingWeights, deprecated
-
-        deprecated("Parameters.shading_weights()", "params.alternation(k)[0] (its .weights())")
-        w = self.alternation(alternation)[0].weights()
-        return ShadingWeights(w["S_c"], w["S_p"], w["S_m"], w["S_l"], w["S_s"])
-
-    def reflectance_weights(self, alternation: int = 1) -> Any:
-        """Deprecated: use :meth:`alternation` (``params.alternation(k)[1]``)."""
-        from torchiid.params.legacy import ReflectanceWeights, deprecated
-
-        deprecated("Parameters.reflectance_weights()", "params.alternation(k)[1]")
-        group = self.alternation(alternation)[1]
-        w = group.weights()
-        return ReflectanceWeights(w["A"], w["B"], w["C"], group.gamma_a)
-
-    def shading_options(self) -> Any:
-        """Deprecated: use ``params.shading`` (a :class:`ShadingParameters`)."""
-        from torchiid.params.legacy import ShadingOptions, deprecated
-
-        deprecated("Parameters.shading_options()", "params.shading")
-        return ShadingOptions.from_parameters(self.shading, seed=self.seed, warn=False)
-
-    def reflectance_options(self) -> Any:
-        """Deprecated: use ``params.reflectance`` (a :class:`ReflectanceParameters`)."""
-        from torchiid.params.legacy import ReflectanceOptions, deprecated
-
-        deprecated("Parameters.reflectance_options()", "params.reflectance")
-        return ReflectanceOptions.from_parameters(self.reflectance, track_objective=False)
 
 
 def _package_version() -> str:
