@@ -154,12 +154,9 @@ def test_runner_checks_its_arguments(tmp_path):
         runner.magic  # noqa: B018
 
 
-def test_the_keyword_form_is_deprecated_and_still_works(tmp_path):
-    with pytest.warns(DeprecationWarning, match=r"EvalOptions\(<option>=\.\.\.\)"):
-        old = EvalRunner("dense", tmp_path, method="s=i", output=tmp_path / "a", device="cpu")
-    assert old.options == EvalOptions(method="s=i", output=tmp_path / "a", device="cpu")
-    assert (old.method, old.output, old.device) == ("s=i", tmp_path / "a", torch.device("cpu"))
-    with pytest.warns(DeprecationWarning), pytest.raises(TypeError, match="magic"):
-        EvalRunner("dense", tmp_path, magic=1)
-    with pytest.warns(DeprecationWarning), pytest.raises(ParameterError, match="batch_size"):
-        EvalRunner("dense", tmp_path, batch_size=0)
+def test_the_settings_are_no_keywords_of_the_runner(tmp_path):
+    # EvalOptions holds them (run_evaluation takes them as keywords)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'method'"):
+        EvalRunner("dense", tmp_path, method="s=i")
+    with pytest.raises(TypeError, match="unexpected keyword argument 'batch_size'"):
+        EvalRunner("dense", tmp_path, EvalOptions(method="s=i"), batch_size=2)

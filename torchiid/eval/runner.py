@@ -29,7 +29,6 @@ reading and scoring excluded); when scoring a results folder, the time to read a
 from __future__ import annotations
 
 import csv
-import dataclasses
 import json
 import logging
 import statistics
@@ -60,7 +59,6 @@ from torchiid.eval.outputs import (
 )
 from torchiid.eval.results import load_layer
 from torchiid.eval.scoring import COUNT_COLUMNS, METRICS, pooled_saw_ap, score_sample
-from torchiid.params.legacy import deprecated
 
 __all__ = [
     "BASELINES",
@@ -110,10 +108,8 @@ class EvalRunner:
     Args:
         dataset: ``"iiw"``, ``"mit"``, ``"saw"`` or ``"dense"``.
         root: the dataset directory.
-        options: how the run goes (default: ``EvalOptions()``, the ``semantic`` method).
-        **legacy: deprecated: the fields of :class:`EvalOptions` as keywords
-            (``EvalRunner(dataset, root, method="r=i")``); pass
-            ``EvalOptions(method="r=i")``, or call :func:`run_evaluation`, which takes them.
+        options: how the run goes (default: ``EvalOptions()``, the ``semantic`` method);
+            :func:`run_evaluation` takes its fields as keywords.
 
     Attributes:
         dataset: the dataset layout.
@@ -144,19 +140,8 @@ class EvalRunner:
         dataset: str,
         root: str | Path,
         options: EvalOptions | None = None,
-        **legacy: Any,
     ) -> None:
         check_dataset(dataset)
-        if legacy:
-            deprecated(
-                "EvalRunner(dataset, root, <option>=...)",
-                "EvalRunner(dataset, root, EvalOptions(<option>=...)) or "
-                "run_evaluation(dataset, root, <option>=...)",
-            )
-            unknown = sorted(set(legacy) - OPTION_NAMES)
-            if unknown:
-                raise TypeError(f"EvalRunner got unexpected keyword arguments {unknown}")
-            options = dataclasses.replace(options or EvalOptions(), **legacy)
         self.options = options if options is not None else EvalOptions()
         o = self.options
         self.results_dir = None if o.results_dir is None else Path(o.results_dir)
