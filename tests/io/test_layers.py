@@ -52,17 +52,13 @@ def test_the_exr_shading_rebuilds_the_image_from_the_16bit_reflectance(tmp_path,
     assert float(rel) < 2e-4  # the least-squares fit to the quantised reflectance
 
 
-def test_the_old_keywords_still_work_with_a_deprecation_warning(tmp_path, layers):
-    conf = torch.ones(1, 40, 56)
-    with pytest.warns(DeprecationWarning, match=r"extras=ExtraOutputs\(npy=\.\.\., confidence"):
-        files = write_layers(
-            tmp_path, "p", *layers, shading_white=1.0, save_npy=True, confidence=conf
-        )
-    assert {"reflectance.npy", "shading.npy", "confidence.png"} <= set(files)
-    with pytest.raises(TypeError, match="not both"):
-        write_layers(
-            tmp_path, "q", *layers, shading_white=1.0, save_npy=True, extras=ExtraOutputs()
-        )
+def test_the_extras_are_no_keywords_of_their_own(tmp_path, layers):
+    # ExtraOutputs holds them
+    with pytest.raises(TypeError, match="unexpected keyword argument 'save_npy'"):
+        write_layers(tmp_path, "p", *layers, shading_white=1.0, save_npy=True)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'confidence'"):
+        write_layers(tmp_path, "p", *layers, shading_white=1.0, confidence=torch.ones(1, 40, 56))
+    assert not any(tmp_path.iterdir())
 
 
 def test_preview_row_puts_panels_side_by_side_at_one_size():

@@ -52,10 +52,8 @@ appear together or not at all.
 from __future__ import annotations
 
 import contextlib
-import functools
 import json
 import os
-import warnings
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -176,29 +174,6 @@ def _write_text(text: str) -> Callable[[Path], None]:
     return write
 
 
-def _legacy_keywords(function: Callable[..., LayerFiles]) -> Callable[..., LayerFiles]:
-    """Accept ``save_npy=`` and ``confidence=`` for ``extras=`` with a DeprecationWarning."""
-
-    @functools.wraps(function)
-    def wrapper(*args: Any, **kwargs: Any) -> LayerFiles:
-        legacy = {k: kwargs.pop(k) for k in ("save_npy", "confidence") if k in kwargs}
-        if legacy:
-            if kwargs.get("extras") is not None:
-                raise TypeError("write_layers: pass extras= or save_npy=/confidence=, not both")
-            warnings.warn(
-                "write_layers(save_npy=..., confidence=...) is deprecated; pass "
-                "extras=ExtraOutputs(npy=..., confidence=...) (torchiid.io.ExtraOutputs)",
-                DeprecationWarning,
-                stacklevel=2,
-            )
-            kwargs["extras"] = ExtraOutputs(
-                npy=bool(legacy.get("save_npy", False)), confidence=legacy.get("confidence")
-            )
-        return function(*args, **kwargs)
-
-    return wrapper
-
-
 def _bands(
     image: torch.Tensor,
     reflectance: torch.Tensor,
@@ -229,7 +204,6 @@ def _bands(
     return r16, s_exr, s8
 
 
-@_legacy_keywords
 def write_layers(
     out_dir: str | os.PathLike,
     stem: str,
@@ -259,8 +233,7 @@ def write_layers(
         params_json: text of ``-params.json`` (omitted when ``None``).
         mask: ``(1, H, W)`` bool; outside it the EXR shading is 0 like the layers.
         extras: the optional files (:class:`ExtraOutputs`: the ``.npy`` pair, the confidence
-            picture); none by default. The keywords ``save_npy=`` and ``confidence=`` are
-            still accepted for one minor version, with a :class:`DeprecationWarning`.
+            picture); none by default.
         overwrite: replace existing files (else :class:`OutputError` if one exists, before
             anything is computed or written).
         output_set: add the files to this :class:`OutputSet` (of ``out_dir``) and leave it to
