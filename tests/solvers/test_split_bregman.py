@@ -169,19 +169,13 @@ def test_errors():
         solve(rho[0], [term], [1.0])
 
 
-def test_the_flat_keywords_still_work_with_a_deprecation_warning():
+def test_the_settings_are_no_keywords_of_the_solver():
+    # SplitBregmanOptions holds them
     rho, term = _problem(b=1)
-    with pytest.warns(DeprecationWarning, match=r"options=SplitBregmanOptions\(max_outer=.*theta="):
-        old = split_bregman(rho, [term], [0.05], theta=2.0, max_outer=3)
-    new = solve(rho, [term], [0.05], theta=2.0, max_outer=3)
-    assert torch.equal(old.z, new.z) and old.theta == new.theta == 2.0
-    # over given options, the keywords win
-    with pytest.warns(DeprecationWarning):
-        both = split_bregman(rho, [term], [0.05], options=SplitBregmanOptions(theta=9.0), theta=2.0,
-                             max_outer=3)  # fmt: skip
-    assert torch.equal(both.z, new.z)
-    with pytest.raises(TypeError, match="unexpected keyword argument 'thetta'"):
-        split_bregman(rho, [term], [0.05], thetta=2.0)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'theta'"):
+        split_bregman(rho, [term], [0.05], theta=2.0)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'max_outer'"):
+        split_bregman(rho, [term], [0.05], options=SplitBregmanOptions(theta=2.0), max_outer=3)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

@@ -40,10 +40,8 @@ change of the right-hand side (``b' − A z = (b − A z) + (b' − b)``), inste
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import logging
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -114,8 +112,6 @@ class SplitBregmanOptions:
 
 logger = logging.getLogger(__name__)
 
-_OPTION_NAMES = frozenset(f.name for f in dataclasses.fields(SplitBregmanOptions))
-
 
 @dataclass(frozen=True)
 class SplitBregmanResult:
@@ -152,24 +148,6 @@ class SplitBregmanResult:
     gap: torch.Tensor | None = None
     theta: float | None = None
     distance: torch.Tensor | None = None
-
-
-def _options(options: SplitBregmanOptions | None, legacy: dict[str, Any]) -> SplitBregmanOptions:
-    """The options, with the keywords of the flat call (deprecated) applied over them."""
-    options = options or SplitBregmanOptions()
-    if not legacy:
-        return options
-    unknown = sorted(set(legacy) - _OPTION_NAMES)
-    if unknown:
-        raise TypeError(f"split_bregman() got an unexpected keyword argument {unknown[0]!r}")
-    names = ", ".join(f"{k}=..." for k in sorted(legacy))
-    warnings.warn(
-        f"split_bregman({names}) is deprecated; pass split_bregman(..., "
-        f"options=SplitBregmanOptions({names})), from torchiid.solvers.split_bregman",
-        DeprecationWarning,
-        stacklevel=3,
-    )
-    return dataclasses.replace(options, **legacy)
 
 
 def _check(
@@ -210,7 +188,6 @@ def split_bregman(
     gamma_a: float = 1.0,
     z0: torch.Tensor | None = None,
     options: SplitBregmanOptions | None = None,
-    **legacy: Any,
 ) -> SplitBregmanResult:
     """Solve ``min_z γ_a‖z − ρ‖² + Σ_k γ_k ‖W_k M_k z‖₁`` by Split-Bregman (Eqs. 12–13).
 
@@ -221,8 +198,6 @@ def split_bregman(
         gamma_a: data weight ``γ_a > 0``.
         z0: start (default ``ρ``).
         options: the solver's settings (:class:`SplitBregmanOptions`; default its defaults).
-        **legacy: the settings as keywords (``theta=``, ``max_outer=``, ...; deprecated:
-            a :class:`DeprecationWarning` names the ``options=`` form).
 
     Returns:
         :class:`SplitBregmanResult`.
@@ -230,7 +205,7 @@ def split_bregman(
     Shape:
         rho, z0 ``(B, C, H, W)``; any float dtype and device (constants follow ``rho``).
     """
-    o = _options(options, legacy)
+    o = options or SplitBregmanOptions()
     _check(rho, gammas, len(terms), gamma_a, o)
     rho = rho.contiguous()  # channels-last strides make the stencil products ~5x slower
     z = (rho if z0 is None else z0).clone(memory_format=torch.contiguous_format)
