@@ -4,12 +4,18 @@ Each stage takes its problem (the tensors: :class:`ShadingProblem`, :class:`Refl
 and its parameter group (:class:`~torchiid.params.ShadingParameters`,
 :class:`~torchiid.params.ReflectanceParameters`, e.g. ``params.alternation(k)``). The 0.x
 configuration objects ``ShadingWeights``, ``ShadingOptions``, ``ReflectanceWeights`` and
-``ReflectanceOptions`` are deprecated aliases (reading them warns).
+``ReflectanceOptions`` were removed in 1.2.0: reading one raises an ``ImportError`` naming its
+replacement (:data:`torchiid.stages.config.REMOVED`).
 """
 
 from typing import Any
 
-from torchiid.stages.config import ReflectanceProblem, ShadingProblem, TemporalPrior
+from torchiid.stages.config import (
+    ReflectanceProblem,
+    ShadingProblem,
+    TemporalPrior,
+    removed_attribute,
+)
 from torchiid.stages.reflectance import (
     ReflectanceCache,
     ReflectanceResult,
@@ -49,6 +55,4 @@ __all__ = [
 
 
 def __getattr__(name: str) -> Any:
-    from torchiid.params import legacy
-
-    return legacy.module_getattr(__name__, name)
+    raise removed_attribute(__name__, name)

@@ -8,24 +8,45 @@ and solver settings; :meth:`Parameters.alternation <torchiid.params.Parameters.a
 gives the groups of each alternation (§3.4).
 
 ``ShadingWeights``, ``ShadingOptions``, ``ReflectanceWeights`` and ``ReflectanceOptions``, the
-configuration objects of torchiid 0.x, are deprecated aliases kept for one minor version
-(:mod:`torchiid.params.legacy`): reading them from here warns and names the replacement.
+configuration objects of torchiid 0.x, were removed in 1.2.0: reading one from
+:mod:`torchiid.stages` or from here raises an ``ImportError`` naming the group that replaces it
+(:data:`REMOVED`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 
 from torchiid.core.exceptions import ParameterError
 
-__all__ = ["ShadingProblem", "ReflectanceProblem", "TemporalPrior", "TEMPORAL_NORMS"]
+__all__ = [
+    "ShadingProblem",
+    "ReflectanceProblem",
+    "TemporalPrior",
+    "TEMPORAL_NORMS",
+    "REMOVED",
+    "check_group",
+    "removed_attribute",
+]
 
 #: the two forms of the temporal reflectance term (:class:`TemporalPrior`)
 TEMPORAL_NORMS = ("l2", "l1")
+
+#: the stages' configuration objects of torchiid 0.x, removed in 1.2.0 -> what replaces each
+REMOVED = {
+    "ShadingWeights": "torchiid.params.ShadingParameters (params.shading; its .weights())",
+    "ShadingOptions": "torchiid.params.ShadingParameters (params.shading)",
+    "ReflectanceWeights": (
+        "torchiid.params.ReflectanceParameters (params.reflectance; its .weights())"
+    ),
+    "ReflectanceOptions": "torchiid.params.ReflectanceParameters (params.reflectance)",
+}
+
+_G = TypeVar("_G")
 
 
 @dataclass(frozen=True, eq=False)
@@ -142,7 +163,32 @@ class ReflectanceProblem:
         return dataclasses.replace(self, **changes)
 
 
-def __getattr__(name: str) -> Any:
-    from torchiid.params import legacy
+def check_group(function: str, group: object, cls: type[_G], attribute: str) -> _G:
+    """``group``, the parameter group the stage function ``function`` takes (a ``cls``).
 
-    return legacy.module_getattr(__name__, name)
+    Raises:
+        ParameterError: ``group`` is not a ``cls``; the message names the class and the
+            attribute of :class:`~torchiid.params.Parameters` that holds it.
+    """
+    if not isinstance(group, cls):
+        raise ParameterError(
+            f"{function} takes a torchiid.params.{cls.__name__} (params.{attribute}), "
+            f"got {type(group).__name__}"
+        )
+    return group
+
+
+def removed_attribute(module: str, name: str) -> Exception:
+    """What reading a missing ``name`` from ``module`` raises.
+
+    An ``ImportError`` naming the replacement for a name of :data:`REMOVED` (so that
+    ``from torchiid.stages import ShadingOptions`` says it, too), else the usual
+    ``AttributeError``.
+    """
+    if name in REMOVED:
+        return ImportError(f"{name} was removed in 1.2.0; use {REMOVED[name]}", name=module)
+    return AttributeError(f"module {module!r} has no attribute {name!r}")
+
+
+def __getattr__(name: str) -> Any:
+    raise removed_attribute(__name__, name)

@@ -55,13 +55,12 @@ from dataclasses import dataclass
 import torch
 
 from torchiid.params import ReflectanceParameters
-from torchiid.params.legacy import reflectance_arguments
 from torchiid.solvers.split_bregman import (
     SplitBregmanOptions,
     SplitBregmanResult,
     split_bregman,
 )
-from torchiid.stages.config import ReflectanceProblem
+from torchiid.stages.config import ReflectanceProblem, check_group
 from torchiid.stages.reflectance_system import (
     ReflectanceCache,
     ReflectanceTerms,
@@ -141,7 +140,6 @@ def shading_from_ratio(
 def solve_reflectance(
     problem: ReflectanceProblem,
     reflectance: ReflectanceParameters,
-    options: object = None,
     *,
     z0: torch.Tensor | None = None,
     cache: ReflectanceCache | None = None,
@@ -158,7 +156,6 @@ def solve_reflectance(
             e.g. ``params.alternation(k)[1]``): the weights (``γ_l``, ``γ_m``, ``γ_g``: 0 or a
             switch is off; ``γ_a`` of the data term), the priors' constants and the
             Split-Bregman settings.
-        options: deprecated; only with the old ``(ReflectanceWeights, ReflectanceOptions)``.
         z0: warm start (default ``ρ``), e.g. the previous alternation's ``R``.
         cache: reuse ``B``'s proposal-feature factor across calls on the same ``g̊``
             (:class:`ReflectanceCache`) and its Bregman-state storage.
@@ -173,9 +170,8 @@ def solve_reflectance(
         rho, image, z0 ``(B, 3, H, W)``; gpca ``(B, d, H, W)``; segments ``(B, H, W)`` long;
         mask ``(B, 1, H, W)`` bool.
     """
-    o, weights, legacy = reflectance_arguments("solve_reflectance", reflectance, options)
-    merge = legacy.get("merge", merge)
-    track_objective = legacy.get("track_objective", track_objective)
+    o = check_group("solve_reflectance", reflectance, ReflectanceParameters, "reflectance")
+    weights = o.weights()
     theta = o.theta * o.value_scale
     balanced = o.bregman_gap_tol > 0 and o.bregman_theta_floor < 1
     warm_theta = None

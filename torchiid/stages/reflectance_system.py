@@ -19,7 +19,6 @@ from torchiid.core.cache import InputKey, input_key
 from torchiid.core.check import check_finite, check_image, check_same_batch, check_shape
 from torchiid.core.exceptions import ShapeError
 from torchiid.params import ReflectanceParameters
-from torchiid.params.legacy import cache_in_options, reflectance_arguments
 from torchiid.priors import kernels
 from torchiid.priors.reflectance_terms import (
     COLOUR_WEIGHTS,
@@ -36,7 +35,7 @@ from torchiid.priors.representatives import (
     segment_layout,
 )
 from torchiid.priors.stencil import Stencil
-from torchiid.stages.config import ReflectanceProblem
+from torchiid.stages.config import ReflectanceProblem, check_group
 from torchiid.stages.temporal import temporal_term
 
 __all__ = [
@@ -300,7 +299,6 @@ def assemble_reflectance_terms(
 def build_reflectance_terms(
     problem: ReflectanceProblem,
     reflectance: ReflectanceParameters,
-    options: object = None,
     cache: ReflectanceCache | None = None,
     *,
     merge: bool = True,
@@ -313,7 +311,6 @@ def build_reflectance_terms(
         reflectance: the stage's parameters (:class:`~torchiid.params.ReflectanceParameters`,
             e.g. ``params.alternation(k)[1]``); each prior's weight is
             ``reflectance.weights()``, 0 is off.
-        options: deprecated; only with the old ``(ReflectanceWeights, ReflectanceOptions)``.
         cache: reuse ``B``'s proposal-feature factor and the Bregman-state storage.
         merge: build ``A`` and ``B`` as one exactly equivalent term ``"A+B"`` (see
             :mod:`torchiid.stages.reflectance`).
@@ -321,6 +318,5 @@ def build_reflectance_terms(
     Returns:
         :class:`ReflectanceTerms`.
     """
-    options, cache = cache_in_options(options, cache, ReflectanceCache)
-    group, weights, legacy = reflectance_arguments("build_reflectance_terms", reflectance, options)
-    return assemble_reflectance_terms(problem, group, weights, cache, legacy.get("merge", merge))
+    o = check_group("build_reflectance_terms", reflectance, ReflectanceParameters, "reflectance")
+    return assemble_reflectance_terms(problem, o, o.weights(), cache, merge)

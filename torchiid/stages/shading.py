@@ -31,11 +31,10 @@ import torch.nn.functional as F
 from torchiid.core.check import check_finite, check_shape
 from torchiid.core.exceptions import ConvergenceWarning, ParameterError
 from torchiid.params import ShadingParameters
-from torchiid.params.legacy import shading_arguments
 from torchiid.priors.quadratic import SumQuadratic
 from torchiid.solvers.multigrid import AMGPreconditioner, GalerkinMultigrid
 from torchiid.solvers.pcg import PCGResult, pcg
-from torchiid.stages.config import ShadingProblem
+from torchiid.stages.config import ShadingProblem, check_group
 from torchiid.stages.shading_system import (
     AnchoredSystem,
     ShadingSystem,
@@ -110,7 +109,6 @@ class ShadingResult:
 def solve_shading(
     problem: ShadingProblem,
     shading: ShadingParameters,
-    options: object = None,
     *,
     x0: torch.Tensor | None = None,
     cache: ShadingSystemCache | None = None,
@@ -126,7 +124,6 @@ def solve_shading(
         shading: the stage's parameters (:class:`~torchiid.params.ShadingParameters`, e.g.
             ``params.alternation(k)[0]``): the priors' weights (0 or a switch turns a prior
             off), their constants and the PCG settings.
-        options: deprecated; only with the old ``(ShadingWeights, ShadingOptions)`` pair.
         x0: ``(B, 1, H, W)`` warm start of ``s`` (e.g. the previous iteration's); the solve
             then runs at most ``warm_cg_max_iter`` iterations (0: ``cg_max_iter``). Without
             it and with ``coarse_levels > 1`` the problem is first solved on a 2x
@@ -150,9 +147,8 @@ def solve_shading(
         image ``(B, 3, H, W)`` -> log_shading, shading ``(B, 1, H, W)``;
         reflectance ``(B, 3, H, W)``.
     """
-    group, weights, legacy = shading_arguments("solve_shading", shading, options)
-    seed, warn = legacy.get("seed", seed), legacy.get("warn", warn)
-    return _solve(_Task(problem, group, weights, seed), x0=x0, cache=cache, warn=warn)
+    group = check_group("solve_shading", shading, ShadingParameters, "shading")
+    return _solve(_Task(problem, group, group.weights(), seed), x0=x0, cache=cache, warn=warn)
 
 
 @dataclass(frozen=True)

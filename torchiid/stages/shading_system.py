@@ -37,7 +37,6 @@ from torchiid.core.cache import InputKey, input_key
 from torchiid.core.check import check_image, check_shape
 from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.params import ShadingParameters
-from torchiid.params.legacy import cache_in_options, shading_arguments
 from torchiid.priors.lle import LLENeighbourhood, lle_term
 from torchiid.priors.matting import matting_stencil, smooth_base
 from torchiid.priors.quadratic import QuadraticTerm, SumQuadratic
@@ -50,7 +49,7 @@ from torchiid.priors.shading_terms import (
     smoothness_term,
 )
 from torchiid.priors.texture import detexture
-from torchiid.stages.config import ShadingProblem
+from torchiid.stages.config import ShadingProblem, check_group
 
 __all__ = [
     "ShadingSystem",
@@ -341,7 +340,6 @@ def assemble_shading_system(
 def build_shading_system(
     problem: ShadingProblem,
     shading: ShadingParameters,
-    options: object = None,
     cache: ShadingSystemCache | None = None,
     *,
     seed: int = 0,
@@ -354,16 +352,14 @@ def build_shading_system(
             ``params.alternation(k)[0]``): each prior's weight is ``shading.weights()``, 0 is
             off (``S_c`` also needs patch centres and features, ``S_m`` the similarities;
             ``S_p`` without a base image uses the Gaussian-smoothed image).
-        options: deprecated; only with the old ``(ShadingWeights, ShadingOptions)`` pair.
         cache: a :class:`ShadingSystemCache` kept across the alternations on one image.
         seed: seed of random LLE neighbours (``Parameters.seed``).
 
     Returns:
         :class:`ShadingSystem`.
     """
-    options, cache = cache_in_options(options, cache, ShadingSystemCache)
-    group, weights, legacy = shading_arguments("build_shading_system", shading, options)
-    return assemble_shading_system(problem, group, weights, cache, legacy.get("seed", seed))
+    group = check_group("build_shading_system", shading, ShadingParameters, "shading")
+    return assemble_shading_system(problem, group, group.weights(), cache, seed)
 
 
 @dataclass(frozen=True)

@@ -14,8 +14,7 @@ import kornia
 import torch
 
 from torchiid.params import ReflectanceParameters
-from torchiid.params.legacy import reflectance_arguments
-from torchiid.stages.config import TemporalPrior
+from torchiid.stages.config import TemporalPrior, check_group
 
 __all__ = ["TemporalL1Term", "TemporalAnchorTerm", "temporal_term"]
 
@@ -111,7 +110,6 @@ def temporal_term(
     prior: TemporalPrior,
     rho: torch.Tensor,
     reflectance: ReflectanceParameters,
-    options: object = None,
     mask: torch.Tensor | None = None,
 ) -> tuple[float, TemporalL1Term | TemporalAnchorTerm] | None:
     """The temporal term ``"T"`` of a :class:`~torchiid.stages.config.TemporalPrior`.
@@ -130,15 +128,12 @@ def temporal_term(
         rho: ``(B, 3, H, W)`` the current ``ρ``.
         reflectance: the stage's parameters at this alternation (``gamma_a``,
             ``value_scale``, ``theta``).
-        options: deprecated; only with the old ``(ReflectanceWeights, ReflectanceOptions)``.
         mask: ``(B, 1, H, W)`` bool or ``None``.
 
     Returns:
         ``(γ_T, term)``, or ``None`` when the weight is 0 or no pixel is trusted.
     """
-    if torch.is_tensor(options) and mask is None:  # the new form, mask given by position
-        options, mask = None, options
-    o = reflectance_arguments("temporal_term", reflectance, options)[0]
+    o = check_group("temporal_term", reflectance, ReflectanceParameters, "reflectance")
     gamma = prior.weight * o.gamma_a * o.value_scale
     conf = prior.confidence.to(rho.dtype).clamp(0, 1)
     if mask is not None:
