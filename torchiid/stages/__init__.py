@@ -5,7 +5,7 @@ and its parameter group (:class:`~torchiid.params.ShadingParameters`,
 :class:`~torchiid.params.ReflectanceParameters`, e.g. ``params.alternation(k)``). The 0.x
 configuration objects ``ShadingWeights``, ``ShadingOptions``, ``ReflectanceWeights`` and
 ``ReflectanceOptions`` were removed in 1.2.0: reading one raises an ``ImportError`` naming its
-replacement (:data:`torchiid.stages.config.REMOVED`).
+replacement.
 """
 
 from typing import Any

@@ -9,8 +9,7 @@ gives the groups of each alternation (§3.4).
 
 ``ShadingWeights``, ``ShadingOptions``, ``ReflectanceWeights`` and ``ReflectanceOptions``, the
 configuration objects of torchiid 0.x, were removed in 1.2.0: reading one from
-:mod:`torchiid.stages` or from here raises an ``ImportError`` naming the group that replaces it
-(:data:`REMOVED`).
+:mod:`torchiid.stages` or from here raises an ``ImportError`` naming the group that replaces it.
 """
 
 from __future__ import annotations
@@ -23,15 +22,8 @@ import torch
 
 from torchiid.core.exceptions import ParameterError
 
-__all__ = [
-    "ShadingProblem",
-    "ReflectanceProblem",
-    "TemporalPrior",
-    "TEMPORAL_NORMS",
-    "REMOVED",
-    "check_group",
-    "removed_attribute",
-]
+# REMOVED, check_group and removed_attribute serve the stage modules, not users
+__all__ = ["ShadingProblem", "ReflectanceProblem", "TemporalPrior", "TEMPORAL_NORMS"]
 
 #: the two forms of the temporal reflectance term (:class:`TemporalPrior`)
 TEMPORAL_NORMS = ("l2", "l1")
