@@ -1,7 +1,7 @@
 """The repository speaks of the software as it is: no word about how it was developed.
 
 Its history is told in versions (``CHANGELOG.md``). Every tracked text file is searched for the
-words of a development log: numbered stops or steps of work, working sessions, issue numbers.
+words of a development log: numbered stops or steps of work, sessions of work, issue numbers.
 A solver's "stop" or "step" followed by a quantity (``log step 0.1``, ``stops at its cap``) is
 technical language and does not match.
 """
@@ -15,9 +15,6 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-#: this file holds examples of the words it looks for
-SELF = Path(__file__).resolve()
-
 #: binary files, never searched
 BINARY = {".jpg", ".jpeg", ".png", ".exr", ".npy", ".onnx", ".gz", ".mp4", ".pth"}
 
@@ -44,7 +41,7 @@ def _tracked_text_files() -> list[Path]:
     except (OSError, subprocess.CalledProcessError):
         pytest.skip("not a git checkout")
     paths = [ROOT / p for p in run.stdout.decode().split("\0") if p]
-    return [p for p in paths if p.suffix.lower() not in BINARY and p.is_file() and p != SELF]
+    return [p for p in paths if p.suffix.lower() not in BINARY and p.is_file()]
 
 
 def test_no_development_words_in_tracked_files():
@@ -63,19 +60,20 @@ def test_no_development_words_in_tracked_files():
 @pytest.mark.parametrize(
     "text",
     [
-        "before stop 31",
-        "stop-25 figures",
-        "stops 20–32",
-        "Stop 28: the gap",
-        "issue 11",
-        "issue #12",
-        "a working session",
-        "session 3",
-        "the next stop",
+        "before st|op 31",
+        "st|op-25 figures",
+        "st|ops 20–32",
+        "St|op 28: the gap",
+        "iss|ue 11",
+        "iss|ue #12",
+        "a working sess|ion",
+        "sess|ion 3",
+        "the next st|op",
     ],
 )
 def test_the_search_finds_development_words(text):
-    assert DEVELOPMENT_WORDS.search(text)
+    # each example is cut by "|" so that this file, which the search also reads, holds none
+    assert DEVELOPMENT_WORDS.search(text.replace("|", ""))
 
 
 @pytest.mark.parametrize(
