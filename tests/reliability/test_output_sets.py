@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import os
+import time
 from pathlib import Path
 
 import cv2
@@ -70,6 +71,61 @@ def test_a_set_is_committed_whole_and_respects_overwrite(tmp_path):
     assert (tmp_path / "x-1.txt").read_text() == "new 1"
 
 
+def test_background_writes_keep_the_set_order_and_run_on_writer_threads(tmp_path):
+    import threading
+
+    threads = {}
+
+    def slow(name, text, delay):
+        def write(p):
+            time.sleep(delay)  # the later files finish first
+            threads[name] = threading.current_thread().name
+            p.write_text(text)
+
+        return write
+
+    with OutputSet(tmp_path, label="x") as tx:
+        tx.write("x-1.txt", slow("1", "one", 0.2), background=True)
+        tx.write("x-2.txt", slow("2", "two", 0.0), background=True)
+        tx.write("x-3.txt", lambda p: p.write_text("three"))  # on the calling thread
+        assert tx.commit() == [tmp_path / f"x-{i}.txt" for i in (1, 2, 3)]
+    assert [(tmp_path / f"x-{i}.txt").read_text() for i in (1, 2, 3)] == ["one", "two", "three"]
+    assert all(t.startswith("torchiid-write") for t in threads.values())
+    assert _listing(tmp_path) == ["x-1.txt", "x-2.txt", "x-3.txt"]
+
+
+def test_a_failed_background_write_fails_the_commit_and_leaves_nothing(tmp_path):
+    (tmp_path / "x-1.txt").write_text("old")
+
+    def full(p):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with pytest.raises(OutputError, match=r"x-2.txt: cannot write \(No space left"):
+        with OutputSet(tmp_path, label="x") as tx:
+            tx.write("x-1.txt", lambda p: p.write_text("new"), background=True)
+            tx.write("x-2.txt", full, background=True)
+            tx.commit()
+    assert _listing(tmp_path) == ["x-1.txt"] and (tmp_path / "x-1.txt").read_text() == "old"
+
+
+def test_an_interrupt_lets_running_background_writes_finish_before_the_cleanup(tmp_path):
+    started, finished = [], []
+
+    def slow(p):
+        started.append(p)
+        time.sleep(0.3)
+        p.write_text("late")  # the folder must still be there
+        finished.append(p)
+
+    with pytest.raises(KeyboardInterrupt), OutputSet(tmp_path / "out", label="x") as tx:
+        tx.write("x-1.txt", slow, background=True)
+        while not started:
+            time.sleep(0.01)
+        raise KeyboardInterrupt
+    assert finished == started  # it completed (no error in the writer) before the removal
+    assert _listing(tmp_path) == []
+
+
 def test_a_failed_rename_puts_the_old_set_back(tmp_path, monkeypatch):
     image, refl, shading = _layers()
     write_layers(tmp_path, "p", image, refl, shading, shading_white=1.0, params_json="{}\n")
@@ -123,14 +179,14 @@ def test_a_write_error_fails_one_image_and_the_batch_goes_on(tmp_path, monkeypat
         _photo(tmp_path / f"{name}.png")
     import torchiid.io.layers as layers
 
-    real = layers.save_encoded
+    real = layers.save_codes
 
-    def disk_full_for_b(path, encoded):
+    def disk_full_for_b(path, codes):  # on a writer thread
         if path.name == "b-preview.png":
             raise OSError(errno.ENOSPC, "No space left on device", str(path))
-        return real(path, encoded)
+        return real(path, codes)
 
-    monkeypatch.setattr(layers, "save_encoded", disk_full_for_b)
+    monkeypatch.setattr(layers, "save_codes", disk_full_for_b)
     out = tmp_path / "out"
     argv = ["decompose", *(str(tmp_path / f"{n}.png") for n in "abc"), "-o", str(out), *FAST]
     assert main(argv) == 1

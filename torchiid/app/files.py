@@ -20,6 +20,7 @@ import torch
 
 from torchiid.app.session import Session
 from torchiid.io import layer_file_names, save_image, write_layers
+from torchiid.io.output_set import OutputSet
 
 __all__ = ["ServerFolder", "layer_names", "write_edited", "write_layers_zip"]
 
@@ -104,19 +105,23 @@ def write_layers_zip(session: Session, folder: Path) -> Path:
             f"{stem}-rho.exr": "last Stage 1 reflectance rho, float32 linear OpenEXR",
         }
         info = {**session.info, "written_by": "torchiid app", "files": files}
-        write_layers(
-            out,
-            stem,
-            full.image[0],
-            full.reflectance[0],
-            full.shading[0],
-            shading_white=float(session.result.shading_white[0]),
-            info=info,
-            params_json=session.params.to_json(),
-            mask=None if full.mask is None else full.mask[0],
-        )
-        save_image(out / f"{stem}-sigma.exr", full.sigma[0], "exr")
-        save_image(out / f"{stem}-rho.exr", full.rho[0], "exr")
+        with OutputSet(out, label=stem) as tx:
+            write_layers(
+                out,
+                stem,
+                full.image[0],
+                full.reflectance[0],
+                full.shading[0],
+                shading_white=float(session.result.shading_white[0]),
+                info=info,
+                params_json=session.params.to_json(),
+                mask=None if full.mask is None else full.mask[0],
+                output_set=tx,
+            )
+            sigma, rho = full.sigma[0], full.rho[0]
+            tx.write(f"{stem}-sigma.exr", lambda p: save_image(p, sigma, "exr"), background=True)
+            tx.write(f"{stem}-rho.exr", lambda p: save_image(p, rho, "exr"), background=True)
+            tx.commit()
         target = folder / f"{stem}-layers.zip"
         partial = folder / f".{stem}-layers.zip.part"
         with zipfile.ZipFile(partial, "w") as zf:

@@ -128,10 +128,10 @@ def write_outputs(
         # the last Stage 1 shading, exact, for `torchiid edit --from` (merge, illumination);
         # its reflectance is the photo divided by it, rebuilt there unless written here
         sg = result.sigma[0].cpu()
-        tx.write(f"{stem}-sigma.exr", lambda p: save_image(p, sg, "exr"))
+        tx.write(f"{stem}-sigma.exr", lambda p: save_image(p, sg, "exr"), background=True)
     if rho:
         rh = result.rho[0].cpu()
-        tx.write(f"{stem}-rho.exr", lambda p: save_image(p, rh, "exr"))
+        tx.write(f"{stem}-rho.exr", lambda p: save_image(p, rh, "exr"), background=True)
     if iterations:
         named = {"sigma": "sigma", "rho": "rho", "R": "reflectance", "S": "shading"}
         for k, layers in enumerate(result.iterations, start=1):

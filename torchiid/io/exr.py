@@ -134,6 +134,16 @@ def exr_attributes(path: Path, metadata: Mapping[str, float | str]) -> dict[str,
     return attributes
 
 
+def _use_threads(openexr: Any) -> None:
+    """Let OpenEXR compress a file's blocks of lines on as many threads as torch uses."""
+    import torch
+
+    threads = torch.get_num_threads()
+    want = threads if threads > 1 else 0  # 0: on the calling thread
+    if want != openexr.global_thread_count():
+        openexr.set_global_thread_count(want)
+
+
 def write_exr(tmp: str, path: Path, arr: np.ndarray, attributes: dict[str, Any]) -> None:
     """Write ``arr`` (gray ``(H, W)`` or ``(H, W, 3)``) to ``tmp``; errors name ``path``."""
     import OpenEXR
@@ -142,6 +152,7 @@ def write_exr(tmp: str, path: Path, arr: np.ndarray, attributes: dict[str, Any])
         channels = {"Y": np.ascontiguousarray(arr, np.float32)}
     else:
         channels = {name: np.ascontiguousarray(arr[..., i]) for i, name in enumerate("RGB")}
+    _use_threads(OpenEXR)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     header.update(attributes)
     try:

@@ -18,6 +18,7 @@ and the folder is still empty. Only SIGKILL or a power loss can leave the hidden
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import os
 import shutil
@@ -25,6 +26,7 @@ import signal
 import tempfile
 import threading
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -146,6 +148,8 @@ class OutputSet:
         self.committed = False
         self._tmp: Path | None = None
         self._created: list[Path] = []
+        self._pending: list[Future[None]] = []  # files being written in the background
+        self._pool: ThreadPoolExecutor | None = None
 
     def __enter__(self) -> OutputSet:
         return self
@@ -166,8 +170,15 @@ class OutputSet:
             ) from None
         return self._tmp
 
-    def write(self, name: str, write: Callable[[Path], Any]) -> Path:
-        """Let ``write(path)`` write the file ``name`` of the set; returns its final path."""
+    def write(self, name: str, write: Callable[[Path], Any], *, background: bool = False) -> Path:
+        """Let ``write(path)`` write the file ``name`` of the set; returns its final path.
+
+        ``background``: run ``write`` on the set's writer threads (as many as torch's threads)
+        and return at once, so that several files are encoded at the same time (OpenCV and
+        OpenEXR release the GIL). The file keeps its place in the set's order; :meth:`wait`
+        and :meth:`commit` wait for it and raise its error, and :meth:`discard` lets it
+        finish before removing anything. The writers take the files in the order given.
+        """
         if "/" in name or os.sep in name or name in ("", ".", ".."):
             raise ValueError(f"an output file name must be a plain name, got {name!r}")
         if name in self.names:
@@ -175,11 +186,40 @@ class OutputSet:
         _test_interrupt("write", len(self.names))
         tmp = self._tmp if self._tmp is not None else self._start()
         self.names.append(name)
+        if background:
+            job = self._writers().submit(self._write, name, write, tmp / "new" / name)
+            self._pending.append(job)
+        else:
+            self._write(name, write, tmp / "new" / name)
+        return self.out / name
+
+    def _writers(self) -> ThreadPoolExecutor:
+        if self._pool is None:
+            import torch  # here: the output folder checks run before torch is imported
+
+            threads = max(1, torch.get_num_threads())
+            self._pool = ThreadPoolExecutor(threads, thread_name_prefix="torchiid-write")
+        return self._pool
+
+    def _write(self, name: str, write: Callable[[Path], Any], path: Path) -> None:
         try:
-            write(tmp / "new" / name)
+            write(path)
         except OSError as exc:
             raise OutputError(f"{self.out / name}: cannot write ({_why(exc)})") from None
-        return self.out / name
+
+    def wait(self) -> None:
+        """Wait for the files being written in the background; raise the first one's error.
+
+        On an error (or an interrupt while waiting) the writes not yet started are cancelled
+        and the running ones finish before it is raised.
+        """
+        pending, self._pending = self._pending, []
+        try:
+            for future in pending:
+                future.result()
+        except BaseException:
+            _settle(pending)
+            raise
 
     def commit(self) -> list[Path]:
         """Rename every file of the set into place; returns their paths.
@@ -188,6 +228,8 @@ class OutputSet:
             OutputError: a target is a folder, a target exists without ``overwrite``, or a
                 rename failed; the old files are back in place and the new ones removed.
         """
+        self.wait()
+        self._stop_writers()
         if self._tmp is None:
             return []
         new, old = self._tmp / "new", self._tmp / "old"
@@ -224,15 +266,30 @@ class OutputSet:
 
     def discard(self) -> None:
         """Remove the temporary files, and the folders the set created if they are empty."""
+        pending, self._pending = self._pending, []
+        _settle(pending)  # no write may still be running in the folder it removes
+        self._stop_writers()
         with _signals_held():
             self._remove_tmp()
             remove_empty_folders(self._created)
             self._created = []
 
+    def _stop_writers(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
     def _remove_tmp(self) -> None:
         if self._tmp is not None:
             shutil.rmtree(self._tmp, ignore_errors=True)
             self._tmp = None
+
+
+def _settle(futures: list[Future[None]]) -> None:
+    """Cancel the writes not yet started and wait for the running ones (errors ignored)."""
+    for future in futures:
+        future.cancel()
+    concurrent.futures.wait(futures)
 
 
 def check_output_folder(out_dir: str | os.PathLike) -> None:
