@@ -283,7 +283,9 @@ def _codes(arr: np.ndarray) -> Callable[[Path], Any]:
     return lambda path: save_codes(path, arr)
 
 
-def _exr(arr: np.ndarray | torch.Tensor, metadata: Mapping[str, Any] | None = None):
+def _exr(
+    arr: np.ndarray | torch.Tensor, metadata: Mapping[str, Any] | None = None
+) -> Callable[[Path], Any]:
     """A writer of ``arr`` as a float32 OpenEXR file (``metadata``: its extra attributes)."""
     return lambda path: save_image(path, arr, "exr", metadata=metadata)
 
@@ -299,9 +301,8 @@ def _add_layers(
     """Write the pictures and arrays of the set (every file but the two JSON files).
 
     Each file is encoded and written on the set's writer threads as soon as its array is
-    ready (OpenCV and OpenEXR release the GIL), the slowest first: at 12 MP the 16-bit PNG
-    takes about a second and each EXR over half of one. The set waits for them before its
-    commit.
+    ready (OpenCV and OpenEXR release the GIL), the 16-bit PNG first: at 12 MP it takes about
+    a second to encode and the EXR over half of one. The set waits for them before its commit.
     """
     image, reflectance, shading = layers
     _, big_h, big_w = reflectance.shape

@@ -222,11 +222,16 @@ class OutputSet:
             raise
 
     def commit(self) -> list[Path]:
-        """Rename every file of the set into place; returns their paths.
+        """Wait for the background writes, then rename every file of the set into place.
+
+        Returns:
+            The files' final paths, in the set's order.
 
         Raises:
             OutputError: a target is a folder, a target exists without ``overwrite``, or a
                 rename failed; the old files are back in place and the new ones removed.
+                A background write's error is raised before anything is renamed (the set
+                is then discarded by its ``with`` block).
         """
         self.wait()
         self._stop_writers()
