@@ -9,7 +9,9 @@ residual), and a :class:`ConvergenceWarning` is emitted otherwise, never a silen
 
 :func:`pcg` is the solver of the pipeline; :func:`pcg_callable` runs the same iteration and
 also records the residual of every iteration (:class:`PCGHistory`), for comparing
-preconditioners.
+preconditioners. On the CPU with a Jacobi preconditioner (or none) the iteration's vector
+work runs as three fused compiled passes (:mod:`torchiid.solvers.pcg_fused`); elsewhere, and
+with ``TORCHIID_KERNELS=torch``, as torch ops.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import torch
 
 from torchiid.core.check import check_finite
 from torchiid.core.exceptions import ConvergenceWarning, ShapeError
+from torchiid.solvers import pcg_fused
 
 __all__ = ["PCGResult", "pcg", "PCGHistory", "pcg_callable"]
 
@@ -134,9 +137,9 @@ class _Run:
     it: int = 0
 
 
-#: called after every iteration with the run (its recursive residual updated) and the items
-#: that were active during the iteration
-Observer = Callable[[_Run, torch.Tensor], None]
+#: called after every iteration with the iterate, the recursive relative residuals and the
+#: items that were active during the iteration
+Observer = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], None]
 
 
 def _iterate(
@@ -152,7 +155,7 @@ def _iterate(
 
     ``limits``: the relative tolerance and the iteration cap. Each item has its own step sizes
     and stops when its true residual is below the tolerance, or on breakdown (``p^T A p <=
-    0``: ``A`` is not SPD on that item).
+    0``: ``A`` is not SPD on that item). Torch ops: any device, any preconditioner.
     """
     tol, max_iter = limits
     bnorm = _bdot(b, b).sqrt()
@@ -180,7 +183,7 @@ def _iterate(
         run.iters = run.iters + active.long()
         run.it += 1
         if observe is not None:
-            observe(run, active)
+            observe(x, run.res, active)
         # breakdown (pap <= 0 or NaN): A is not SPD on this item; stop it, do not claim success
         run.broke = run.broke | (active & ~ok)
         done = active & ok & ~(run.res > tol)
@@ -200,6 +203,29 @@ def _iterate(
             run.reached = run.reached | (done & ~redo)
         active = active & ~run.reached & ~run.broke
     return run
+
+
+def _run(
+    matvec: Operator,
+    b: torch.Tensor,
+    x: torch.Tensor,
+    r: torch.Tensor,
+    precond: tuple[torch.Tensor | Operator | None, Operator],
+    limits: tuple[float, int],
+    observe: Observer | None = None,
+) -> _Run:
+    """The iteration: fused compiled passes where they apply, else torch ops.
+
+    ``precond``: the preconditioner as given and as an operator (see
+    :mod:`~torchiid.solvers.pcg_fused`).
+    """
+    if pcg_fused.applies(precond[0], b, x):
+        tensor = precond[0] if isinstance(precond[0], torch.Tensor) else None
+        r, bnorm, res, reached, broke, iters, it = pcg_fused.iterate(
+            matvec, b, x, r.contiguous(), tensor, limits, observe
+        )
+        return _Run(x, r, bnorm, res, reached, broke, iters, int(it))
+    return _iterate(matvec, b, x, r, precond[1], limits, observe)
 
 
 def pcg(
@@ -252,7 +278,7 @@ def pcg(
             raise ShapeError(f"r0 has shape {tuple(r0.shape)} but b has shape {tuple(b.shape)}")
         r = r0.clone(memory_format=torch.contiguous_format)
         check_finite(r, "start residual r0")
-    run = _iterate(matvec, b, x, r, apply_m, (tol, max_iter))
+    run = _run(matvec, b, x, r, (precond, apply_m), (tol, max_iter))
     converged = bool(run.reached.all())
     r, res = run.r, run.res
     if true_residual:
@@ -308,15 +334,15 @@ def pcg_callable(
     snaps: dict[float, torch.Tensor] = {}
     pending = sorted({float(t) for t in snapshot_tols}, reverse=True)
 
-    def observe(run: _Run, active: torch.Tensor) -> None:
+    def observe(x: torch.Tensor, res: torch.Tensor, active: torch.Tensor) -> None:
         # an item keeps the residual it stopped at
-        hist.append(torch.where(active, run.res, hist[-1]))
+        hist.append(torch.where(active, res, hist[-1]))
         while pending and bool((hist[-1] <= pending[0]).all()):
-            snaps[pending.pop(0)] = run.x.clone()
+            snaps[pending.pop(0)] = x.clone()
 
     bnorm = _bdot(b, b).sqrt()
     hist.append(_relative(r, torch.where(bnorm > 0, bnorm, torch.ones_like(bnorm))))
-    run = _iterate(matvec, b, x, r, apply_m, (tol, max_iter), observe)
+    run = _run(matvec, b, x, r, (precond, apply_m), (tol, max_iter), observe)
     res_true = _relative(b - matvec(x), run.bnorm)
     final = {t: x.clone() for t in pending if bool((res_true <= t).all())}
     return PCGHistory(
