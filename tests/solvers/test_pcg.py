@@ -3,7 +3,16 @@ import pytest
 import torch
 
 from torchiid.core.exceptions import ConvergenceWarning, ImageError, ShapeError
+from torchiid.solvers import pcg_fused
 from torchiid.solvers.pcg import pcg, pcg_callable
+
+
+@pytest.fixture(autouse=True, params=["fused", "torch"])
+def iteration(request, monkeypatch):
+    """Every test runs the fused CPU iteration where it applies, and the torch ops'."""
+    if request.param == "torch":
+        monkeypatch.setattr(pcg_fused, "applies", lambda *args: False)
+    return request.param
 
 
 def _spd(n, seed, cond=100.0):

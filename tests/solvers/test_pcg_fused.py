@@ -4,10 +4,12 @@ import numpy as np
 import pytest
 import torch
 
+from torchiid.core.exceptions import ShapeError
 from torchiid.priors.kernel_runtime import compiled
 from torchiid.solvers import pcg_fused
 from torchiid.solvers.pcg import pcg, pcg_callable
 
+numba = pytest.importorskip("numba")
 pytestmark = pytest.mark.skipif(compiled() is None, reason="compiled kernels are off")
 
 
@@ -43,7 +45,7 @@ def test_fused_iteration_matches_the_torch_ops(monkeypatch, jacobi):
     # two images that stop at different iterations, sides that are not whole chunks
     mv, b, minv = _stencil_problem((2, 1, 70, 130), torch.float64, easy_last=True)
     pre = minv if jacobi else None
-    assert pcg_fused.applies(pre, b, b)
+    assert pcg_fused.applies(pre, b, b, b)
     fused = pcg(mv, b, precond=pre, tol=1e-9, max_iter=400)
     _torch_only(monkeypatch)
     ref = pcg(mv, b, precond=pre, tol=1e-9, max_iter=400)
@@ -70,6 +72,7 @@ def test_fused_float32_stops_where_the_torch_ops_do(monkeypatch):
     assert float(true) <= 1e-4
 
 
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="numba has one thread here")
 def test_fused_result_does_not_depend_on_threads_or_batch():
     # enough chunks for numba's pool (a 1 x 1 x 200 x 300 image is 15 chunks)
     mv, b, minv = _stencil_problem((2, 1, 200, 300), torch.float32, seed=1)
@@ -117,15 +120,57 @@ def test_fused_breakdown_and_history(monkeypatch):
 
 def test_where_the_fused_iteration_applies():
     b = torch.ones(1, 5)
-    assert pcg_fused.applies(None, b, b) and pcg_fused.applies(torch.ones(1, 5), b, b)
-    assert not pcg_fused.applies(lambda r: r, b, b)  # a callable preconditioner
-    assert not pcg_fused.applies(None, b.half(), b.half())
-    assert not pcg_fused.applies(None, b, b.double())
-    assert not pcg_fused.applies(torch.ones(1, 5, dtype=torch.float64), b, b)
+    assert pcg_fused.applies(None, b, b, b) and pcg_fused.applies(torch.ones(1, 5), b, b, b)
+    assert not pcg_fused.applies(lambda r: r, b, b, b)  # a callable preconditioner
+    assert not pcg_fused.applies(None, b.half(), b.half(), b.half())
+    assert not pcg_fused.applies(None, b, b.double(), b)
+    assert not pcg_fused.applies(None, b, b, b.double())  # a start residual of another dtype
+    assert not pcg_fused.applies(torch.ones(1, 5, dtype=torch.float64), b, b, b)
+    assert not pcg_fused.applies(None, torch.ones(0, 5), torch.ones(0, 5), torch.ones(0, 5))
     grad = torch.ones(1, 5, requires_grad=True)
-    assert not pcg_fused.applies(None, grad, grad)
+    assert not pcg_fused.applies(None, grad, grad, grad)
+    assert not pcg_fused.applies(None, b, b, grad)  # the operator's output records a graph
     with torch.no_grad():
-        assert pcg_fused.applies(None, grad, grad)
+        assert pcg_fused.applies(None, grad, grad, grad)
+
+
+def test_solves_the_fused_iteration_cannot_take_run_the_torch_ops():
+    # an operator whose output requires grad, a start residual of another dtype, no items
+    w = torch.full((2, 8), 2.0, requires_grad=True)
+    res = pcg(lambda v: w * v, torch.ones(2, 8), tol=1e-10)
+    assert res.converged
+    torch.testing.assert_close(res.x.detach(), torch.full((2, 8), 0.5))
+    b = torch.ones(2, 8)
+    res = pcg(lambda v: 2 * v, b, r0=b.double(), tol=1e-10)
+    assert res.converged
+    empty = pcg_callable(lambda v: v, torch.ones(0, 5))
+    assert empty.x.shape == (0, 5)
+
+
+def test_an_operator_of_the_wrong_shape_is_an_error():
+    with pytest.raises(ShapeError, match="operator returned shape"):
+        pcg(lambda v: 2 * v[:1], torch.ones(2, 5, dtype=torch.float64), max_iter=3)
+
+
+@pytest.mark.parametrize("jacobi", [True, False])
+def test_restart_from_the_true_residual_matches_the_torch_ops(monkeypatch, jacobi):
+    # a wrong start residual: the recursive residual reaches the tolerance first, the true
+    # one does not, and each item restarts its direction from the true residual
+    mv, b, minv = _stencil_problem((3, 1, 30, 40), torch.float64, seed=5, easy_last=True)
+    pre = minv if jacobi else None
+    x0 = torch.zeros_like(b)
+    wrong = b + 0.3 * torch.randn(b.shape, generator=torch.Generator().manual_seed(9),
+                                   dtype=b.dtype)  # fmt: skip
+    fused = pcg(mv, b, x0=x0, precond=pre, r0=wrong, tol=1e-8, max_iter=500)
+    _torch_only(monkeypatch)
+    ref = pcg(mv, b, x0=x0, precond=pre, r0=wrong, tol=1e-8, max_iter=500)
+    assert fused.converged and ref.converged
+    # the answer solves the system, not the wrong residual's
+    true = (b - mv(fused.x)).flatten(1).norm(dim=1) / b.flatten(1).norm(dim=1)
+    assert float(true.max()) <= 1e-8
+    assert torch.equal(fused.item_iterations, ref.item_iterations)
+    torch.testing.assert_close(fused.x, ref.x, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(fused.r, ref.r, rtol=1e-6, atol=1e-14)
 
 
 def test_kernels_against_numpy():
@@ -136,9 +181,10 @@ def test_kernels_against_numpy():
     x, r, p, ap, m = (rng.standard_normal((3, n)).astype(np.float32) for _ in range(5))
     alpha = np.array([0.5, -1.0, 0.0], dtype=np.float32)
     nc = k.chunks(n)
-    parts = np.empty((3, nc))
-    k.dots(p, ap, parts)
-    np.testing.assert_allclose(parts.sum(1), (p.astype(float) * ap).sum(1), rtol=1e-12)
+    for fn in (k.dots, k.dots_parallel):
+        parts = np.empty((3, nc))
+        fn(p, ap, parts)
+        np.testing.assert_allclose(parts.sum(1), (p.astype(float) * ap).sum(1), rtol=1e-12)
     for minv in (m, np.zeros((0, 0), np.float32)):
         for fn in (k.update, k.update_parallel):
             xs, rs = x.copy(), r.copy()

@@ -169,6 +169,7 @@ def _iterate(
     run = _Run(x, r, bnorm, res, ~active, torch.zeros_like(active), iters)
     while run.it < max_iter and bool(active.any()):
         ap = matvec(p)
+        pcg_fused.check_product(ap, p)
         pap = _bdot(p, ap)
         ok = pap > 0
         alpha = torch.where(active & ok, rz / torch.where(ok, pap, 1), 0)
@@ -219,7 +220,7 @@ def _run(
     ``precond``: the preconditioner as given and as an operator (see
     :mod:`~torchiid.solvers.pcg_fused`).
     """
-    if pcg_fused.applies(precond[0], b, x):
+    if pcg_fused.applies(precond[0], b, x, r):
         tensor = precond[0] if isinstance(precond[0], torch.Tensor) else None
         r, bnorm, res, reached, broke, iters, it = pcg_fused.iterate(
             matvec, b, x, r.contiguous(), tensor, limits, observe
@@ -259,7 +260,8 @@ def pcg(
             solve's :attr:`PCGResult.r`), saving the first product; shaped like ``b``.
 
     Raises:
-        ShapeError: ``x0`` or the preconditioner is not shaped like ``b``.
+        ShapeError: ``x0`` or the preconditioner is not shaped like ``b``, or ``matvec``
+            returns another shape than its input's.
         ImageError: ``b`` or ``x0`` holds NaN or infinite values.
 
     Returns:

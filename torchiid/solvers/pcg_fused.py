@@ -23,9 +23,10 @@ from types import ModuleType
 import numpy as np
 import torch
 
+from torchiid.core.exceptions import ShapeError
 from torchiid.priors.kernel_runtime import compiled, parallel_lock, usable
 
-__all__ = ["applies", "iterate"]
+__all__ = ["applies", "check_product", "iterate"]
 
 logger = logging.getLogger(__name__)
 
@@ -47,17 +48,26 @@ def _kernels() -> tuple[ModuleType, ModuleType] | None:
     return found[0], pcg_kernels
 
 
-def applies(precond: object, b: torch.Tensor, x: torch.Tensor) -> bool:
+def applies(precond: object, b: torch.Tensor, x: torch.Tensor, r: torch.Tensor) -> bool:
     """Whether :func:`iterate` runs this solve.
 
-    It does for CPU float ``b`` and ``x`` of one dtype (no autograd), with the compiled
-    kernels on and a Jacobi preconditioner (a tensor shaped like ``b``) or none.
+    It does for a non-empty batch of CPU float ``b``, ``x`` and start residual ``r`` of one
+    dtype (no autograd: ``r`` carries the operator's), with the compiled kernels on and a
+    Jacobi preconditioner (a tensor shaped like ``b``) or none.
     """
     if precond is not None and not isinstance(precond, torch.Tensor):
         return False
-    if not usable(b, x) or _kernels() is None:
+    if b.dim() < 1 or b.shape[0] == 0 or not usable(b, x, r) or _kernels() is None:
         return False
     return precond is None or usable(b, precond)
+
+
+def check_product(ap: torch.Tensor, p: torch.Tensor) -> None:
+    """Raise :class:`~torchiid.core.exceptions.ShapeError` unless ``A p`` is shaped like ``p``."""
+    if ap.shape != p.shape:
+        raise ShapeError(
+            f"the operator returned shape {tuple(ap.shape)} for an input of shape {tuple(p.shape)}"
+        )
 
 
 def _rows(t: torch.Tensor) -> np.ndarray:
@@ -153,6 +163,8 @@ def iterate(
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         while it < max_iter and active.any():
             ap = matvec(p)
+            check_product(ap, p)  # the kernels index both alike
+            ap = ap.to(p.dtype)
             pap = ops.dot(p, ap)
             ok = pap > 0
             rz_new, rr = ops.update(x, r, p, ap, _ratio(rz, pap, active & ok))
