@@ -105,6 +105,11 @@ def test_fused_breakdown_and_history(monkeypatch):
 
     res = pcg(mv, b, max_iter=50, warn=False)
     assert not res.converged and float(res.residual[1]) <= 1e-5
+    assert int(res.item_iterations[0]) < 50  # stopped on the breakdown, not at the cap
+    with monkeypatch.context() as m:
+        _torch_only(m)
+        ref = pcg(mv, b, max_iter=50, warn=False)
+    assert torch.equal(res.item_iterations, ref.item_iterations)
     # the history records the fused iteration's residuals, kept where an item stopped
     mv2, b2, minv2 = _stencil_problem((2, 1, 40, 50), torch.float64, seed=2, easy_last=True)
     hist = pcg_callable(mv2, b2, precond=minv2, tol=1e-8, max_iter=300)
@@ -148,7 +153,7 @@ def test_solves_the_fused_iteration_cannot_take_run_the_torch_ops():
 
 
 def test_an_operator_of_the_wrong_shape_is_an_error():
-    with pytest.raises(ShapeError, match="operator returned shape"):
+    with pytest.raises(ShapeError, match="operator's output"):
         pcg(lambda v: 2 * v[:1], torch.ones(2, 5, dtype=torch.float64), max_iter=3)
 
 

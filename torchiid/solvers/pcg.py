@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from torchiid.core.check import check_finite
+from torchiid.core.check import check_finite, check_shape
 from torchiid.core.exceptions import ConvergenceWarning, ShapeError
 from torchiid.solvers import pcg_fused
 
@@ -169,7 +169,7 @@ def _iterate(
     run = _Run(x, r, bnorm, res, ~active, torch.zeros_like(active), iters)
     while run.it < max_iter and bool(active.any()):
         ap = matvec(p)
-        pcg_fused.check_product(ap, p)
+        check_shape(ap, tuple(p.shape), pcg_fused.PRODUCT)
         pap = _bdot(p, ap)
         ok = pap > 0
         alpha = torch.where(active & ok, rz / torch.where(ok, pap, 1), 0)
@@ -222,10 +222,9 @@ def _run(
     """
     if pcg_fused.applies(precond[0], b, x, r):
         tensor = precond[0] if isinstance(precond[0], torch.Tensor) else None
-        r, bnorm, res, reached, broke, iters, it = pcg_fused.iterate(
-            matvec, b, x, r.contiguous(), tensor, limits, observe
-        )
-        return _Run(x, r, bnorm, res, reached, broke, iters, int(it))
+        state, it = pcg_fused.iterate(matvec, b, x, r.contiguous(), tensor, limits, observe)
+        r, bnorm, res, reached, broke, iters = state
+        return _Run(x, r, bnorm, res, reached, broke, iters, it)
     return _iterate(matvec, b, x, r, precond[1], limits, observe)
 
 

@@ -23,10 +23,13 @@ from types import ModuleType
 import numpy as np
 import torch
 
-from torchiid.core.exceptions import ShapeError
+from torchiid.core.check import check_shape
 from torchiid.priors.kernel_runtime import compiled, parallel_lock, usable
 
-__all__ = ["applies", "check_product", "iterate"]
+__all__ = ["applies", "iterate", "PRODUCT"]
+
+#: what a shape error calls the operator's output
+PRODUCT = "the operator's output matvec(x) (shaped like its input x)"
 
 logger = logging.getLogger(__name__)
 
@@ -62,14 +65,6 @@ def applies(precond: object, b: torch.Tensor, x: torch.Tensor, r: torch.Tensor) 
     return precond is None or usable(b, precond)
 
 
-def check_product(ap: torch.Tensor, p: torch.Tensor) -> None:
-    """Raise :class:`~torchiid.core.exceptions.ShapeError` unless ``A p`` is shaped like ``p``."""
-    if ap.shape != p.shape:
-        raise ShapeError(
-            f"the operator returned shape {tuple(ap.shape)} for an input of shape {tuple(p.shape)}"
-        )
-
-
 def _rows(t: torch.Tensor) -> np.ndarray:
     return t.view(t.shape[0], -1).numpy()
 
@@ -83,7 +78,7 @@ class _Passes:
         self._numba, self._k = found
         self.dtype = like.numpy().dtype
         nb = like.shape[0]
-        self._nc = self._k.chunks(like[0].numel() if nb else 0)
+        self._nc = self._k.chunks(like[0].numel())
         self.minv = None if minv is None else minv.contiguous()
         self._m = np.zeros((0, 0), self.dtype) if self.minv is None else _rows(self.minv)
         threads = min(torch.get_num_threads(), self._numba.config.NUMBA_NUM_THREADS)
@@ -139,14 +134,14 @@ def iterate(
     minv: torch.Tensor | None,
     limits: tuple[float, int],
     observe: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], None] | None = None,
-) -> tuple[torch.Tensor, ...]:
+) -> tuple[tuple[torch.Tensor, ...], int]:
     """The PCG iteration from ``x`` with residual ``r`` (contiguous; updated in place).
 
     ``limits``: the relative tolerance and the iteration cap; ``observe(x, res, active)``,
     if given, is called after every iteration with the recursive relative residuals and the
-    items that were active in it. Returns ``(r, bnorm, res, reached, broke, iters)`` as
-    tensors and the iterations run as a 0-d tensor: what :func:`~torchiid.solvers.pcg.pcg`'s
-    run holds.
+    items that were active in it. Returns ``((r, bnorm, res, reached, broke, iters), it)``:
+    the per-item state as tensors and the iterations run, what
+    :func:`~torchiid.solvers.pcg.pcg`'s run holds.
     """
     tol, max_iter = limits
     ops = _Passes(minv, b)
@@ -163,7 +158,7 @@ def iterate(
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         while it < max_iter and active.any():
             ap = matvec(p)
-            check_product(ap, p)  # the kernels index both alike
+            check_shape(ap, tuple(p.shape), PRODUCT)  # the kernels index both alike
             ap = ap.to(p.dtype)
             pap = ops.dot(p, ap)
             ok = pap > 0
@@ -192,12 +187,12 @@ def iterate(
                 reached |= done & ~redo
             active &= ~reached & ~broke
     dtype = b.dtype
-    return (
+    state = (
         r,
         torch.from_numpy(bnorm).to(dtype),
         torch.from_numpy(res).to(dtype),
         torch.from_numpy(reached),
         torch.from_numpy(broke),
         torch.from_numpy(iters),
-        torch.tensor(it),
     )
+    return state, it
