@@ -9,7 +9,8 @@ For every preset and size (megapixels; 4:3 JPEG mosaics of scikit-image photos, 
 its peak RSS is read from ``wait4``. A run on a 128x96 photo with the same preset gives the
 process's own footprint (libraries, feature extractor); the growth above it is compared with
 :func:`torchiid.model.memory_needed`, the estimate that ``decompose`` checks against the
-memory available before it starts. A ratio above 1 means the estimate is conservative.
+memory available before it starts (with Stage 1's layers, which the command keeps for
+``-sigma.exr``). A ratio above 1 means the estimate is conservative.
 """
 
 from __future__ import annotations
@@ -73,7 +74,7 @@ def main() -> None:
                     cv2.imwrite(str(photo), rgb[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 92])
                 out = d / f"out-{preset}-{mp:g}"  # a fresh folder: no manifest to skip by
                 peak, status = _peak_rss(photo, out, preset, args.max_side)
-                est = memory_needed(h, w, params)
+                est = memory_needed(h, w, params, return_stage1=True)  # as decompose checks
                 growth = peak - base
                 note = "" if status == 0 else f"  (exit status {status})"
                 print(

@@ -53,7 +53,8 @@ class Command:
         module: its module in :mod:`torchiid.commands`, with ``add_arguments(parser)`` and
             ``run(args) -> int`` (and optionally ``DESCRIPTION`` and ``EPILOG`` strings).
         help: the one line ``torchiid --help`` shows.
-        runs_long: takes the run options (``--no-progress``, ``--device``, ``--threads``).
+        runs_long: takes the run options (``--no-progress``, ``--device``, ``--threads``,
+            ``--memory-limit``).
     """
 
     name: str

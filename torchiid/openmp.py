@@ -5,11 +5,10 @@ for ``GOMP_SPINCOUNT`` iterations (300,000 by default, most of a millisecond) af
 parallel region before it sleeps. The pipeline alternates torch operations with its compiled
 kernels, which run on other threads (numba's own OpenMP runtime and a small band pool), so
 on a machine with few cores the spinning torch threads take the cores those kernels need.
-With 30,000 a 512×384 photo took 1.67–1.72 s instead of 1.78–1.88 s on 2 cores (three
-interleaved pairs), with the same results (documentation, Benchmarks page). A value the user has
-set is kept; the setting only takes effect when ``torchiid`` is imported before ``torch``
-(libgomp reads it once, at load), as the command line does. Other OpenMP runtimes (LLVM's,
-Intel's) ignore it.
+30,000 spins leave those cores to the kernels, with the same results (the documentation's
+Benchmarks page, "Threads and OpenMP"). A value the user has set is kept; the setting only
+takes effect when ``torchiid`` is imported before ``torch`` (libgomp reads it once, at load),
+as the command line does. Other OpenMP runtimes (LLVM's, Intel's) ignore it.
 """
 
 import logging

@@ -233,9 +233,9 @@ class WorkerPool:
             daemon=True,
         )
         old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)  # inherited: see above
-        # The mask alone did not keep Ctrl-C out of a worker's start-up imports (about 1 run in
-        # 4 under load: a library thread with SIGINT unblocked took it and Python raised
-        # KeyboardInterrupt in the importing main thread). An ignored SIGINT survives exec and
+        # The mask alone does not keep Ctrl-C out of a worker's start-up imports: a library
+        # thread with SIGINT unblocked can take it, and Python then raises KeyboardInterrupt in
+        # the importing main thread. An ignored SIGINT survives exec and
         # Python keeps it ignored at start-up, until _worker_main installs its handler; the
         # parent goes without a SIGINT handler only for the fork and exec.
         main = threading.current_thread() is threading.main_thread()

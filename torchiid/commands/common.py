@@ -81,7 +81,8 @@ def _threads(text: str) -> int:
 def run_options() -> argparse.ArgumentParser:
     """A parent parser with the options of every command that runs long.
 
-    ``--no-progress``, ``--device``, ``--threads N``, ``-q/--quiet``, ``-v/--verbose``.
+    ``--no-progress``, ``--device``, ``--threads N``, ``--memory-limit GB``, ``-q/--quiet``,
+    ``-v/--verbose``.
     """
     p = argparse.ArgumentParser(add_help=False)
     group = p.add_argument_group("run options")
@@ -124,7 +125,8 @@ def add_parameter_options(p: argparse.ArgumentParser) -> None:
         default="default",
         help=(
             "parameter preset: default, print (photos of printed matter: documents, "
-            "labels), paper or converged (every solve to tolerance)"
+            "labels), texture (densely textured surfaces: tiles, wood, fabric), paper or "
+            "converged (every solve to tolerance)"
         ),
     )
     p.add_argument("--params", type=Path, help="JSON file of parameters (over the preset)")

@@ -31,8 +31,8 @@ def undo_malloc_trim_threshold() -> bool:
 
     Dask's nanny starts workers with ``MALLOC_TRIM_THRESHOLD_=65536``. Setting that variable
     also switches off glibc's dynamic mmap threshold, so every buffer above 128 KiB is mapped
-    and unmapped on each allocation and its pages faulted in again: measured, a decomposition
-    at 512×384 ran 2–4× slower in such a process. This sets the thresholds explicitly to what
+    and unmapped on each allocation and its pages faulted in again, which makes a
+    decomposition several times slower. This sets the thresholds explicitly to what
     the dynamic rule converges to for large tensors (mmap above 32 MiB, trim above 128 MiB).
     Linux with glibc only; elsewhere, or without the variable, it does nothing.
 

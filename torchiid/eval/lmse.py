@@ -2,7 +2,7 @@
 
 Grosse, Johnson, Adelson & Freeman, "Ground truth dataset and baseline evaluations for
 intrinsic image algorithms", ICCV 2009, Section 4; the reference is ``local_error`` /
-``score_image`` in their MIT intrinsic code. Choices made here (DESIGN.md "Evaluation"):
+``score_image`` in their MIT intrinsic code. Choices made here:
 
 - Windows are ``window × window`` with top-left corners ``0, shift, 2·shift, …`` as long as
   the window fits inside the image (no padding; a strip narrower than the shift at the

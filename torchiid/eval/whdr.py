@@ -2,7 +2,7 @@
 
 Bell, Bala & Snavely, "Intrinsic Images in the Wild", SIGGRAPH 2014, Section 5. The metric
 compares the reflectance estimate at pairs of points with crowd judgements of which point
-is darker; see DESIGN.md "Evaluation".
+is darker (δ = 0.10; the documentation's Evaluation guide).
 """
 
 from __future__ import annotations

@@ -9,10 +9,9 @@ keys (``_conv_stem``, ``_bn0``, ``_blocks.N._expand_conv``, ...) so it loads str
 
 Input convention: the network sees **sRGB** values in ``[0, 1]`` mapped to ``(x * 255 - 127) / 128``
 (:func:`normalize`); classification uses 224x224 inputs (:func:`preprocess`). Convolutions use
-TensorFlow "SAME" padding (the weights come from TensorFlow training): on skimage's ``chelsea``
-and ``coffee`` it gives class 285 (p = 0.79) and 967 (p = 0.88) against 0.69 and 0.84 with
-symmetric padding, and higher confidence on 10 of 14 test photos. The model accepts any ``H, W``;
-:func:`feature_offset` says where each output cell is centred.
+TensorFlow "SAME" padding, the padding the weights were trained with (symmetric padding lowers
+the classifier's confidence: the documentation's Method page, "CNN"). The model accepts any
+``H, W``; :func:`feature_offset` says where each output cell is centred.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Selective-search object proposals as region masks (paper §3.1.2, DESIGN "Stage 0").
+"""Selective-search object proposals as region masks (paper §3.1.2).
 
 The paper takes region masks and objectness scores from MCG. torchiid uses selective search
 (Uijlings et al. 2013, "Selective Search for Object Recognition", IJCV): for every *strategy*

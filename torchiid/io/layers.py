@@ -86,7 +86,7 @@ __all__ = [
 #: longest side of each panel of the preview
 PREVIEW_SIDE = 1024
 
-#: what each file is, for ``-info.json`` and the README
+#: what each file is, for ``-info.json``
 DESCRIPTIONS = {
     "reflectance.png": "reflectance R (albedo in [0, 1]), 8-bit sRGB",
     "shading.png": "shading S / shading_white, 8-bit sRGB (values above shading_white clip)",

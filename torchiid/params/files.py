@@ -25,7 +25,8 @@ VERSION_KEY = "torchiid_version"
 
 #: Parameters added since the parameter set took its present shape, by the version that added
 #: them, with the value that runs what the method did before (a switch off, the paper's
-#: choice). Each new parameter must be added here under its version
+#: choice, or the value the earlier version had built in, as ``t_x_sigma``'s 3 px before
+#: 1.1.0). Each new parameter must be added here under its version
 #: (``tests/test_params.py`` checks that every parameter is here or in the oldest record).
 ADDED_SINCE: dict[str, dict[str, Any]] = {
     "0.5.0": {"shading_preconditioner": "jacobi"},

@@ -115,7 +115,8 @@ class Parameters:
             raise ParameterError("at least one of stage1 and stage2 must be on")
 
     def __getattr__(self, name: str) -> Any:
-        # only called when the normal lookup fails: a grouped parameter's flat name (removed)
+        # only called when the normal lookup fails: a grouped parameter's flat name is not an
+        # attribute, and the error names its group
         group = FLAT_NAMES.get(name)
         where = f"; read params.{group}.{name}" if group is not None else ""
         raise AttributeError(f"'Parameters' object has no attribute {name!r}{where}")
@@ -123,7 +124,10 @@ class Parameters:
     # ------------------------------------------------------------------ construction
     @classmethod
     def preset(cls, name: str) -> "Parameters":
-        """A named parameter set: one of :data:`PRESETS` (default, print, paper, converged)."""
+        """A named parameter set: ``default``, ``print``, ``texture``, ``paper``, ``converged``.
+
+        The names are the keys of :data:`PRESETS`.
+        """
         if name not in PRESETS:
             raise ParameterError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
         return cls(**PRESETS[name])

@@ -103,7 +103,7 @@ class ShadingParameters(StageGroup):
         "slowly stays (only with t_x > 0)",
         paper=None,
         valid="> 0",
-        why="5: wood's rings, about 9 px apart, leave the targets (a 3-px fit kept a tenth of "
+        why="5: wood's rings, about 9 px apart, leave the targets (a 3-px fit keeps a tenth of "
         "them), while a hard shadow edge across the texture blurs less than at 8 px",
     )
     t_m: float = param(
@@ -131,7 +131,7 @@ class ShadingParameters(StageGroup):
         paper=0.0,
         valid=">= 0",
         why="an input guard for clipped highlights, which the MIT objects hardly have "
-        "(off: +0.000002 in validation)",
+        "(off: +0.000003 in validation)",
     )
     base_sigma: float = param(
         1.0,

@@ -47,9 +47,8 @@ def memory_needed(
 
     An estimate of the peak growth on the CPU: :data:`BYTES_PER_WORKING_PIXEL` per pixel of
     the working resolution ``params.output.max_side``, :data:`BYTES_PER_FULL_PIXEL` per pixel
-    of the input and :data:`MEMORY_OVERHEAD`, fitted on photos (README "Errors and exit
-    statuses", "Memory": within 2% at full resolution with the ``default`` solvers, once 10%
-    under; up to 16% over with ``converged``, up to 45% over at 512 px); with
+    of the input and :data:`MEMORY_OVERHEAD`, fitted on photos (how well it fits whole
+    processes: the documentation's Benchmarks page, "Memory estimate"); with
     ``return_stage1`` (:func:`~torchiid.model.decompose`'s default) 16 bytes more per input
     pixel (``σ, ρ`` at full resolution), with ``return_iterations`` 32 bytes per working pixel
     and alternation (``σ, ρ, R, S``). The libraries and the feature extractor, loaded once per

@@ -79,8 +79,8 @@ def _inv_sym3(c: torch.Tensor) -> torch.Tensor:
     closed-form ``L D Lᵀ`` factorisation is backward stable for SPD matrices, so the inverse is
     accurate to about ``κ · ε``. The adjugate over the cofactor-expansion determinant is not: on
     a window with one outlier pixel (a base value of 220 among values near 2, condition number
-    7.5e7) its determinant lost 0.75%, the window's block of the Laplacian got an eigenvalue of
-    −0.02 and the shading system stopped being positive definite.
+    7.5e7) it loses enough of the determinant to give the window's block of the Laplacian a
+    negative eigenvalue, and the shading system is then not positive definite.
     """
     a, b, cc, d, e, f = c[:, 0, 0], c[:, 0, 1], c[:, 0, 2], c[:, 1, 1], c[:, 1, 2], c[:, 2, 2]
     l21, l31 = b / a, cc / a

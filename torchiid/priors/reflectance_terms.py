@@ -92,7 +92,8 @@ class StencilL1Term(L1Term):
         keep_state: store the Bregman variable at every update, also the last one of a
             solve (needed when ``state`` is to warm-start a later solve). ``False``: the last
             update (``final=True``) leaves it unwritten, saving a write of ``C·K`` planes
-            (141 MB at 512×384); :attr:`state_written` then tells that the storage is stale.
+            (141 MB in float32 at 512×384); :attr:`state_written` then tells that the storage
+            is stale.
         replay: with ``keep_state=False``, keep the state as the ``z`` of its updates instead
             of storing it (see :meth:`bregman_step`); ``False`` for solves that make more
             than ``REPLAY_STEPS + 1`` updates, which would replay at a loss.

@@ -123,8 +123,7 @@ def smoothness_term(
     ``S_m`` tie patches and proposals, and the matting Laplacian's null space contains shading
     that jumps wherever its base image does. So across a chromaticity edge the energy decides
     only weakly whether the shading steps, and an early-stopped solve keeps whatever step its
-    start left there (on MIT's dinosaur the green patches came out darker in the shading than
-    the white body).
+    start left there (the documentation's Method page, "Additions to the energy").
     A small weight (``lambda_s``) pulls the shading towards continuity there and is negligible
     where ``S_l`` ties pixels (its weights are about 1 per pair, ``lambda_l`` = 2).
 
@@ -214,8 +213,8 @@ def edge_confidence(
     0.6 * dark green`` (linear ``(0.8, 0.75, 0.55)`` and ``(0.006, 0.018, 0.008)``) is 0.6
     degrees from cream's chromaticity at 2.4x less light. ``S_l`` then ties it to the cream
     beside it and asks the shading to take that intensity step, which moves a bright print's
-    whole level into the shading (MIT's teabag2: its cream oval came out 1.7x brighter in the
-    shading than the green around it). :func:`retinex_term` with ``t_e > 0`` multiplies
+    whole level into the shading (the documentation's Method page, "Additions to the
+    energy"). :func:`retinex_term` with ``t_e > 0`` multiplies
     ``S_l``'s weights by ``min(e_i, e_j)``, so the shading's level across a colour edge is left
     to the other priors (``S_s``, ``S_m``, ``S_c``). A sharp brightness step of one colour is
     print as often as it is a shadow's or a crease's edge; ``t_d`` takes it for print. A thin

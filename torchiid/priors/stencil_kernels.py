@@ -127,7 +127,7 @@ def _affinity_exponent(  # pragma: no cover - compiled
     """``out_k(i) = scale · ‖f_i − f_j‖²``, ``j = i + o_k``: the exponent of the affinity.
 
     ``-inf`` (a weight of 0 once exponentiated) where the exponent is below ``floor`` (see
-    ``reflectance_terms.MIN_EXPONENT``), where the pair leaves the image and, with ``mask``
+    ``affinity.MIN_EXPONENT``), where the pair leaves the image and, with ``mask``
     ``(B, 1, H, W)`` (``(0, 0, 0, 0)`` for none), where it touches a pixel outside. The caller
     exponentiates (torch's ``exp`` is vectorised, numba's is not without Intel's SVML).
     """

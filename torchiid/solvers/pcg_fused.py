@@ -4,7 +4,8 @@ Besides the operator's product, an iteration makes about a dozen passes over vec
 like the right-hand side (``pᵀAp``, the updates of ``x`` and ``r``, ``z = M⁻¹ r``, ``rᵀz``,
 ``rᵀr``, the new direction) and some forty operations on the ``(B,)`` step sizes, masks and
 residuals. On a 512×341 image each of those takes microseconds, dispatch included; as torch
-ops they add up to about a third of a shading solve's time. Where the compiled kernels apply
+ops they cost more than the vector passes themselves (the documentation's Method page, "The
+PCG iteration on the CPU"). Where the compiled kernels apply
 (CPU float tensors, no autograd, a Jacobi preconditioner or none: :func:`applies`), this
 iteration makes three compiled passes (:mod:`torchiid.solvers.pcg_kernels`): ``pᵀAp``; ``x``,
 ``r``, ``rᵀz`` and ``rᵀr``; ``p = z + βp``, with ``z`` computed on the fly instead of

@@ -22,29 +22,20 @@ Video. A :class:`~torchiid.stages.config.TemporalPrior` in the problem adds a te
 pulling ``z`` toward another frame's reflectance warped onto this one
 (:mod:`torchiid.stages.temporal`). Without it (still images) nothing changes.
 
-Scales. The paper's values (γ_l = γ_m = 20, γ_g = 2, θ = 40, §4) are reused from Bi et al.'s
-Matlab code, which works on 8-bit values ``0..255``. ``γ_a`` is not given; 1 is used. We evaluate
-Eq. 12 on ``s·z`` (``s = value_scale = 255``) and divide by ``s``, i.e. on our ``[0, 1]`` linear
+Scales. The paper's values (γ_l = γ_m = 20, γ_g = 2, θ = 40, §4) come from Bi et al.'s Matlab
+code, which works on 8-bit values ``0..255``; ``γ_a`` is not given (1 here). So Eq. 12 is
+evaluated on ``s·z`` (``s = value_scale = 255``) and divided by ``s``: on our ``[0, 1]`` linear
 values the solver minimises ``Σ_k γ_k ‖W_k M_k z‖₁ + s·γ_a ‖z − ρ‖²`` with penalty ``s·θ``. With
-``s = 1`` the L1 terms dominate (γ_l · 120 neighbours against a data weight of 1) and the
-minimiser collapses colour edges. Measured on a seeded 64×48 Mondrian with ``ρ`` = reflectance +
-N(0, 0.03²) (RMSE of ``ρ`` to the truth 0.030): converged solutions (30 outer × 30 CG) reach
-RMSE 0.13 at ``s = 1`` and 0.064 at ``s = 255``; the default few iterations (3 outer × 5 CG,
-``s = 255``) reach 0.021. The suppressed luminance (``w_L = 0.1``) lets the exact minimiser
-merge patches differing mainly in lightness (0.026 converged with ``w_L = 1``): the flattening
-behaviour of Bi et al.; the few-iteration default stops well before that (figures for
-``colour_weights="wide"``).
+``s = 1`` the L1 terms would outweigh the data term (γ_l · 120 neighbours against a weight of 1)
+and the minimiser would merge colours across edges (the documentation's Method page, "Scale of
+the L1 terms").
 
-Colour-weight width and the ablation (MIT-Berkeley, 10 objects). ``B``'s weights are ``v^l``
-times a gate, on ``A``'s pairs, so ``B`` can only add flattening where ``A`` flattens; on
-``g̊`` the gate (``t_g = t = 0.05``) is in effect a same-atom indicator (pairs inside one atom
-have ``Δg̊ = 0``, pairs across atoms ``‖Δg̊‖ ≈ 0.3``). With the ``"wide"`` weights ``A``
-alone already washes out thin coloured prints and ``B`` makes it worse (mean LMSE, 4 × 5
-Bregman steps: v7 0.0239, v4 0.0224, v4 with ``γ_l = 40`` 0.0234); with ``"bi"`` (Bi et al.'s
-weights, the default) ``A`` keeps them and ``B`` helps (v7 0.0230, v4 0.0248, v4 with
-``γ_l = 40`` 0.0235, v1 0.0406; these figures with the shading PCG capped at 100 iterations and
-4 × 5 Bregman steps; with the ``default`` preset's 2 × 3 steps and warm cap 30: v7 0.0222, v4
-0.0225, v1 0.0416; ``paper`` preset: v7 0.0246, v4 0.0259).
+Colour weights. ``B``'s weights are ``v^l`` times a gate on ``A``'s pairs, so ``B`` only adds
+flattening where ``A`` flattens; on ``g̊`` the gate (``t_g = t = 0.05``) is in effect a
+same-atom indicator (pairs inside one atom have ``Δg̊ = 0``, pairs across atoms
+``‖Δg̊‖ ≈ 0.3``). The default ``colour_weights="bi"`` are Bi et al.'s weights, 5–6× narrower
+than the unscaled reading ``"wide"``: with them ``A`` keeps thin coloured prints and ``B``
+helps (Method page, "Colour weights").
 """
 
 from __future__ import annotations

@@ -142,8 +142,9 @@ def matting_base(
     previous alternation found (relief, bumps: the Retinex term ties them to the
     shading) is pushed into the reflectance at the next one. Mixing in the Gaussian-smoothed
     image ``I_σ`` (the first alternation's base), as a weighted geometric mean, keeps a damped
-    copy of the shading's edges in the base (``R^β I^(1−β) ≈ R S^(1−β)``), so the term no
-    longer works against them. ``mix = 0``: the smoothed image in every alternation.
+    copy of the shading's edges in the base (``R^β I^(1−β) ≈ R S^(1−β)``), so the term does
+    not work against them as it does with ``mix = 1``. ``mix = 0``: the smoothed image in
+    every alternation.
 
     Shape:
         image, reflectance ``(B, 3, H, W)`` (linear), mask ``(B, 1, H, W)`` or ``None``.
