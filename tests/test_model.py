@@ -148,6 +148,24 @@ def test_working_resolution_below_patch_size_is_rejected():
         decompose(mondrian(96, 128).image, FAST.replace(max_side=64))
 
 
+@pytest.mark.parametrize(("size", "max_side"), [((60, 60), 512), ((120, 120), 60)])
+def test_an_image_of_one_patch_decomposes(size, max_side):
+    # the smallest allowed working size holds one 60 px patch: S_c has no neighbour to tie it
+    # to and is left out, the other priors decompose it
+    s = mondrian(*size, seed=2)
+    p = Parameters().replace(iterations=1, max_side=max_side)
+    out = decompose(s.image, p)
+    assert out.reflectance.shape == (1, 3, *size)
+    rebuilt = out.reflectance * out.shading
+    assert torch.allclose(rebuilt, s.image, atol=1e-4)
+    assert bool(torch.isfinite(out.shading).all()) and float(out.shading.min()) > 0
+
+
+def test_the_module_names_bad_params_when_it_is_made():
+    with pytest.raises(ParameterError, match="params must be a torchiid.Parameters, got dict"):
+        IntrinsicDecomposer({"iterations": 1})
+
+
 def test_progress_is_reported():
     calls = []
     decompose(mondrian(64, 64).image, FAST, progress=lambda *a: calls.append(a))
@@ -173,6 +191,7 @@ def test_progress_is_reported():
             "empty",
         ),
         (torch.rand(1, 3, 64, 64), {"mask": np.ones((64, 64))}, ShapeError, "torch.Tensor"),
+        (torch.rand(1, 3, 64, 64), {"progress": 5}, ParameterError, "progress must be a callable"),
     ],
 )
 def test_bad_input_gets_clear_errors(image, kwargs, error, message):

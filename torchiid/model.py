@@ -142,6 +142,10 @@ def decompose(
         True
     """
     params = _checked_params(params)
+    if progress is not None and not callable(progress):
+        raise ParameterError(
+            f"progress must be a callable progress(stage, k, total), got {type(progress).__name__}"
+        )
     t_start = time.perf_counter()
     work = working_inputs(
         image, mask, params, init=init, temporal=temporal, schedule_start=schedule_start,
@@ -245,7 +249,7 @@ class IntrinsicDecomposer(nn.Module):
 
     def __init__(self, params: Parameters | None = None, return_iterations: bool = False):
         super().__init__()
-        self.params = params if params is not None else Parameters.preset("default")
+        self.params = _checked_params(params)  # a bad value is named here, not at the first call
         self.return_iterations = return_iterations
 
     def forward(self, image: torch.Tensor, mask: torch.Tensor | None = None) -> Decomposition:

@@ -269,3 +269,14 @@ def test_check_memory_takes_an_explicit_limit_over_the_environment(monkeypatch):
     check_memory(3024, 4032, p, limit=need)
     with pytest.raises(MemoryLimitError, match=r"4032x3024 px at 512x384 px needs about"):
         check_memory(3024, 4032, p, limit=need - 1)
+
+
+def test_figures_in_messages_keep_their_first_digits():
+    from torchiid.pipeline.memory import _gb
+
+    assert [_gb(n) for n in (1e6, 1e7, 2.5e8, 31.6e9)] == [
+        "0.001 GB",
+        "0.01 GB",
+        "0.25 GB",
+        "31.6 GB",
+    ]

@@ -9,6 +9,41 @@ from torchiid.io import load_image, read_exr, save_image
 from torchiid.synthetic import mondrian
 
 
+@pytest.mark.parametrize(
+    ("option", "value", "message"),
+    [
+        ("--hue", "nan", "argument --hue: not a finite number"),
+        ("--strength", "inf", "argument --strength: not a finite number"),
+        ("--blur", "1e9", "blur must be <= "),
+        ("--feather", "-3", "feather must be >= 0"),
+    ],
+)
+def test_numbers_out_of_range_are_usage_errors(files, tmp_path, capsys, option, value, message):
+    d, out = files
+    operation = {"--hue": "recolour", "--strength": "illumination-intensity"}.get(option, "merge")
+    operation = "soften-shadows" if option == "--feather" else operation
+    args = ["edit", operation, str(d / "m.png"), "--from", str(out), "-o", str(tmp_path / "x")]
+    args += ["--mask", str(d / "mask.png"), f"{option}={value}"]
+    if message.startswith("argument"):  # refused by the command line's parser
+        with pytest.raises(SystemExit) as exited:
+            main(args)
+        assert exited.value.code == 2
+    else:
+        assert main(args) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and "RuntimeWarning" not in err
+    assert not (tmp_path / "x").exists()
+
+
+def test_a_photo_the_decomposition_refuses_is_named(files, tmp_path, capsys):
+    d, _ = files
+    args = ["edit", "merge", str(d / "m.png"), "-o", str(tmp_path / "x"), "--memory-limit", "0.001"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"torchiid: error: {d / 'm.png'}: decomposing")
+    assert "memory limit of 0.001 GB" in err[0]
+
+
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
     d = tmp_path_factory.mktemp("edit")

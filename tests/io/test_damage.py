@@ -177,3 +177,24 @@ def test_tiff_strips_past_the_end_are_found_without_decoding(tmp_path):
     data = path.read_bytes()
     path.write_bytes(data[:-100])
     assert "TIFF image data" in _expect_damaged(path)
+
+
+def test_a_header_over_opencvs_pixel_cap_is_named(tmp_path):
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        crc = zlib.crc32(kind + body) & 0xFFFFFFFF
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", crc)
+
+    header = struct.pack(">IIBBBBB", 60000, 60000, 8, 2, 0, 0, 0)  # 3.6e9 px declared
+    path = tmp_path / "huge.png"
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(b"\0" * 64))
+        + chunk(b"IEND", b"")
+    )
+    with pytest.raises(ImageError, match="declares more pixels than OpenCV decodes") as err:
+        load_image(path)
+    assert "OPENCV_IO_MAX_IMAGE_PIXELS" in str(err.value) and "loadsave.cpp" not in str(err.value)

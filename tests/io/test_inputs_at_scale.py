@@ -59,6 +59,14 @@ def test_recursive_listing_skips_hidden_folders_and_the_output_folder(library):
     assert "out/cover-reflectance" in _keys(list_inputs([library], recursive=True))
 
 
+def test_hidden_files_are_skipped_with_or_without_recursion(library):
+    photo(library / "._cover.png")  # macOS's AppleDouble file beside the photo
+    for recursive in (False, True):
+        keys = _keys(list_inputs([library], recursive=recursive))
+        assert "cover" in keys and "._cover" not in keys
+    assert _keys(list_inputs([library / "._cover.png"])) == ["._cover"]  # named on its own
+
+
 def test_globs_keep_the_folders_below_their_fixed_part(library, monkeypatch):
     monkeypatch.chdir(library.parent)
     items = list_inputs(["library/*/IMG_0001.png", "library/**/IMG_0002.png"])

@@ -89,15 +89,20 @@ def test_existing_outputs_are_kept_and_the_chain_resumes(frames, tmp_path, capsy
     params = json.loads((out / "video-params.json").read_text())
     (out / "video-params.json").write_text(json.dumps({**params, "torchiid_version": "0.9.0"}))
     before["video-params.json"] = (out / "video-params.json").read_bytes()
-    # the whole sequence into the same folder: frames 1-2 exist (reported), 3-4 are new
-    assert main(["decompose-video", str(frames), "-o", str(out), *FAST]) == 1
+    # the whole sequence into the same folder: frames 1-2 exist (skipped as done), 3-4 are new
+    assert main(["decompose-video", str(frames), "-o", str(out), *FAST]) == 0
     err = capsys.readouterr().err
-    assert "frame-000001-" in err and "exists; pass --overwrite" in err
-    assert "2 of 4 frame(s) failed" in err
+    assert "2 frame(s) written, 2 skipped" in err and "error" not in err
     after = snapshot(out)
     assert all(after[name] == data for name, data in before.items())  # byte for byte
     info = json.loads((out / "frame-000003-info.json").read_text())
     assert info["linked_to_previous"] is True  # continued from frame 2's files
+    # a frame with only some of its files is no finished frame: reported, status 1
+    (out / "frame-000004-preview.png").unlink()
+    assert main(["decompose-video", str(frames), "-o", str(out), *FAST]) == 1
+    err = capsys.readouterr().err
+    assert "frame-000004-" in err and "exists; pass --overwrite" in err
+    assert "1 of 4 frame(s) failed" in err and "0 frame(s) written, 3 skipped" in err
     assert main(["decompose-video", str(frames), "-o", str(out), "--overwrite", *FAST]) == 0
 
 
@@ -294,6 +299,25 @@ def test_a_broken_video_file_is_one_line(tmp_path, capsys):
     assert main(["decompose-video", str(clip), "-o", str(tmp_path / "out"), *FAST]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "clip.mp4: cannot open as a video" in err[0]
+
+
+def test_a_video_of_frames_below_the_patch_size_is_refused_before_any_frame(tmp_path, capsys):
+    av = pytest.importorskip("av")
+    clip = tmp_path / "tiny.mp4"
+    with av.open(str(clip), mode="w") as container:
+        stream = container.add_stream("libx264", rate=10)
+        stream.width, stream.height, stream.pix_fmt = 64, 48, "yuv420p"
+        for i in range(3):
+            rgb = np.full((48, 64, 3), 40 * (i + 1), np.uint8)
+            for packet in stream.encode(av.VideoFrame.from_ndarray(rgb, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    out = tmp_path / "out"
+    assert main(["decompose-video", str(clip), "-o", str(out), *FAST]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "tiny.mp4: its frames are 64x48 px; at least 60 px" in err[0], err
+    assert not out.exists()
 
 
 def test_a_folder_of_another_version_with_the_same_settings_resumes(tmp_path):

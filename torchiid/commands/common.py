@@ -7,6 +7,7 @@ Nothing here imports torch (or anything heavy) at module level: the parsers are 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 from pathlib import Path
@@ -69,6 +70,14 @@ def _number(text: str, kind: type[_N], what: str) -> _N:
         return kind(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not {what}: {text!r}") from None
+
+
+def finite_float(text: str) -> float:
+    """An option's number; argparse refuses NaN and infinities (status 2) before any work."""
+    value = _number(text, float, "a number")
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"not a finite number: {text!r}")
+    return value
 
 
 def _threads(text: str) -> int:

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 from torchiid.commands.common import (
     add_overwrite_and_linear,
     add_parameter_options,
+    finite_float,
     params_from_args,
     say,
 )
@@ -81,25 +82,36 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="edit Stage 2's R and S instead of the merged components (illumination-intensity "
         "is defined from both stages and always uses them)",
     )
-    p.add_argument("--blur", type=float, help="Gaussian sigma in px of the merge's residue filter")
+    p.add_argument(
+        "--blur", type=finite_float, help="Gaussian sigma in px of the merge's residue filter"
+    )
     p.add_argument("--tint", default="red", help="illumination-colour: name, R,G,B or #rrggbb")
     p.add_argument(
-        "--strength", type=float, help="illumination-colour (default 1), -intensity (0.5)"
+        "--strength", type=finite_float, help="illumination-colour (default 1), -intensity (0.5)"
     )
-    p.add_argument("--percentile", type=float, default=0.95, help="light regions' quantile")
+    p.add_argument("--percentile", type=finite_float, default=0.95, help="light regions' quantile")
     p.add_argument(
-        "--radius", type=float, default=0.35, help="tint fall-off, fraction of the longer side"
+        "--radius",
+        type=finite_float,
+        default=0.35,
+        help="tint fall-off, fraction of the longer side",
     )
     p.add_argument("--combine", default="mean", choices=COMBINE, help="how E1 and E2 combine")
     p.add_argument("--flatten", default="mean", choices=["mean", "median"])
     p.add_argument("--texture", type=Path, help="replace-albedo: texture image")
     p.add_argument("--fit", default="tile", choices=["tile", "stretch"])
-    p.add_argument("--scale", type=float, default=1.0, help="replace-albedo: tile size factor")
-    p.add_argument("--hue", type=float, default=0.0, help="recolour: hue rotation in degrees")
-    p.add_argument("--chroma", type=float, default=1.0, help="recolour: chroma factor")
+    p.add_argument(
+        "--scale", type=finite_float, default=1.0, help="replace-albedo: tile size factor"
+    )
+    p.add_argument(
+        "--hue", type=finite_float, default=0.0, help="recolour: hue rotation in degrees"
+    )
+    p.add_argument("--chroma", type=finite_float, default=1.0, help="recolour: chroma factor")
     p.add_argument("--colour", help="recolour: target colour of the region")
-    p.add_argument("--amount", type=float, default=0.5, help="soften-shadows: <= 1; < 0 hardens")
-    p.add_argument("--feather", type=float, default=0.0, help="soften-shadows: mask edge px")
+    p.add_argument(
+        "--amount", type=finite_float, default=0.5, help="soften-shadows: <= 1; < 0 hardens"
+    )
+    p.add_argument("--feather", type=finite_float, default=0.0, help="soften-shadows: mask edge px")
     add_parameter_options(p)
     add_overwrite_and_linear(p)
 
@@ -181,12 +193,17 @@ def _check_outputs(out: Path, names: list[str], overwrite: bool) -> None:
 def _decompose(args: argparse.Namespace, batch: torch.Tensor, params: Any) -> Any:
     """Decompose ``batch``; a capped solve is said in one line (``-v`` for the preset's caps)."""
     from torchiid.collection.job import solver_note
-    from torchiid.core.exceptions import ConvergenceWarning
+    from torchiid.core.exceptions import ConvergenceWarning, TorchiidError
     from torchiid.model import decompose
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)  # said below, in one line
-        result = decompose(batch, params, return_stage1=True)
+        try:
+            result = decompose(batch, params, return_stage1=True)
+        except TorchiidError as exc:  # the photo's problem: named with the photo, as decompose
+            if str(args.input) in str(exc):
+                raise
+            raise type(exc)(f"{args.input}: {exc}") from exc
     note, detail = solver_note(
         str(args.input), list(result.solves), params.converge, f"{args.input.stem}-info.json"
     )

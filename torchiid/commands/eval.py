@@ -13,7 +13,7 @@ import math
 import sys
 from pathlib import Path
 
-from torchiid.commands.common import add_parameter_options, params_from_args
+from torchiid.commands.common import add_parameter_options, finite_float, params_from_args
 
 __all__ = ["DATASETS", "DESCRIPTION", "EPILOG", "METHODS", "add_arguments", "run"]
 
@@ -112,7 +112,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="discard existing results in the output folder and start over",
     )
-    p.add_argument("--delta", type=float, default=0.10, help="WHDR equality margin (iiw)")
+    p.add_argument("--delta", type=finite_float, default=0.10, help="WHDR equality margin (iiw)")
     p.add_argument(
         "--flow",
         type=Path,

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 from torchiid.commands.common import (
     add_overwrite_and_linear,
     add_parameter_options,
+    finite_float,
     params_from_args,
 )
 
@@ -46,9 +47,10 @@ outputs: for frame i (1-based) frame-<i:06d>-reflectance.png, -shading.png, -pre
 with --preview, preview.mp4 ([input | reflectance | shading], H.264). One albedo scale and one
 shading_white hold for the whole sequence (set by its first frame).
 
-existing outputs are kept unless --overwrite: a frame whose files exist is reported and
-skipped (status 1), and its reflectance, read back from frame-*-reflectance-linear16.png,
-continues the temporal chain, so an interrupted run can be resumed with the same command. A
+existing outputs are kept unless --overwrite: a frame whose files all exist is skipped as
+done, and its reflectance, read back from frame-*-reflectance-linear16.png, continues the
+temporal chain, so the same command again resumes an interrupted run (status 0 when every
+frame is written or was done); a frame with only some of its files is reported (status 1). A
 rerun whose parameters or video options differ from the folder's video-params.json stops
 before any frame (status 2): pass --overwrite or choose another output folder."""
 
@@ -73,7 +75,7 @@ def add_arguments(v: argparse.ArgumentParser) -> None:
     )
     v.add_argument(
         "--temporal-weight",
-        type=float,
+        type=finite_float,
         help="weight of the temporal term relative to Stage 2's data term (default: "
         + ", ".join(f"{k} {w:g}" for k, w in DEFAULT_TEMPORAL_WEIGHT.items())
         + "; 0 = none)",
@@ -100,7 +102,7 @@ def add_arguments(v: argparse.ArgumentParser) -> None:
         "--preview", action="store_true", help="also write preview.mp4 (input | R | S), needs PyAV"
     )
     v.add_argument(
-        "--fps", type=float, help="frame rate of the preview (default: the video's, or 24)"
+        "--fps", type=finite_float, help="frame rate of the preview (default: the video's, or 24)"
     )
     v.add_argument(
         "--save-npy", action="store_true", help="also write float32 linear .npy arrays per frame"
@@ -254,7 +256,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             print(message, file=sys.stderr)
 
-    failures = written = seen = 0
+    failures = written = seen = skipped = 0
     preview = None
     if args.preview:
         target = out / PREVIEW_NAME
@@ -292,10 +294,15 @@ def run(args: argparse.Namespace) -> int:
                     if target.is_dir() and not target.is_symlink():
                         raise OutputError(f"{target}: is a folder; cannot replace it by an output")
                 if existing and not args.overwrite:
-                    if not _resume(video, out, stem, image, mask):
+                    resumed = _resume(video, out, stem, image, mask)
+                    if not resumed:
                         video.reset()
                     elif preview is not None:
                         _preview_from_files(preview, out, stem, image)
+                    if resumed and len(existing) == len(names):  # done by an earlier run
+                        skipped += 1
+                        log.info("%s: %s/%s-* exist; skipped", where, out, stem)
+                        continue
                     raise OutputError(f"{existing[0]} exists; pass --overwrite to replace it")
                 t0 = time.perf_counter()
                 frame = _decompose_frame(
@@ -372,6 +379,12 @@ def run(args: argparse.Namespace) -> int:
     bar.close()
     if seen == 0:
         raise TorchiidError(f"{args.input}: holds no frames")
+    if skipped and not getattr(args, "quiet", False):
+        print(
+            f"torchiid: {written} frame(s) written, {skipped} skipped (written by an earlier "
+            "run; --overwrite replaces them)",
+            file=sys.stderr,
+        )
     if failures:
         print(f"torchiid: {failures} of {seen} frame(s) failed", file=sys.stderr)
         return 1

@@ -8,7 +8,7 @@ import kornia
 import torch
 import torch.nn.functional as F
 
-from torchiid.core.exceptions import ShapeError
+from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.core.stats import image_quantile
 
 __all__ = ["default_blur", "gaussian"]
@@ -59,6 +59,34 @@ def safe_div(a: torch.Tensor, b: torch.Tensor, default: float = 1.0) -> torch.Te
     """``a / b`` where ``|b| > EPS``, else ``default``."""
     ok = b.abs() > EPS
     return torch.where(ok, a / torch.where(ok, b, torch.ones_like(b)), torch.full_like(a, default))
+
+
+def check_number(
+    value: float, name: str, *, low: float | None = None, high: float | None = None
+) -> float:
+    """``value`` as a float if it is a finite number in ``[low, high]``, else a ParameterError."""
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise ParameterError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(x):
+        raise ParameterError(f"{name} must be a finite number, got {value!r}")
+    if low is not None and x < low:
+        raise ParameterError(f"{name} must be >= {low:g}, got {value!r}")
+    if high is not None and x > high:
+        raise ParameterError(f"{name} must be <= {high:g}, got {value!r}")
+    return x
+
+
+def check_blur(sigma: float | None, name: str, like: torch.Tensor) -> float | None:
+    """A Gaussian σ in pixels: ``None``, or finite in ``[0, the image's longer side]``.
+
+    A σ beyond the longer side blurs the image to its mean, as the longer side does, and its
+    padding would take memory in proportion to σ².
+    """
+    if sigma is None:
+        return None
+    return check_number(sigma, name, low=0.0, high=float(max(like.shape[-2:])))
 
 
 def check_layers(image: torch.Tensor, *others: torch.Tensor | None) -> None:

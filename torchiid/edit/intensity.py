@@ -6,7 +6,16 @@ import torch
 from torch import nn
 
 from torchiid.core.exceptions import ParameterError
-from torchiid.edit.common import EPS, check_layers, default_blur, gaussian, safe_div, white_level
+from torchiid.edit.common import (
+    EPS,
+    check_blur,
+    check_layers,
+    check_number,
+    default_blur,
+    gaussian,
+    safe_div,
+    white_level,
+)
 from torchiid.edit.merging import Merged, merge
 
 __all__ = ["COMBINE", "IlluminationIntensity", "illumination_intensity"]
@@ -49,7 +58,7 @@ def illumination_intensity(
         shading: Stage 2 ``S``.
         sigma: Stage 1 ``σ``.
         rho: Stage 1 ``ρ``.
-        strength: how much light is added (0: none).
+        strength: how much light is added (0: none; >= 0).
         combine: ``"mean"``, ``"e1"``, ``"e2"`` or ``"max"``.
         blur: σ in pixels of the filter (default: 4 ×
             :func:`~torchiid.edit.common.default_blur`).
@@ -61,6 +70,8 @@ def illumination_intensity(
     if combine not in COMBINE:
         raise ParameterError(f"combine must be one of {', '.join(COMBINE)}, got {combine!r}")
     check_layers(image, reflectance, shading, sigma, rho)
+    strength = check_number(strength, "strength", low=0.0)  # < 0 would take light below 0
+    blur = check_blur(blur, "blur", image)
     if merged is None:
         merged = merge(image, reflectance, shading, sigma, rho)
     if blur is None:

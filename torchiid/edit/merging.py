@@ -7,7 +7,14 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from torchiid.edit.common import EPS, check_layers, default_blur, gaussian, safe_div
+from torchiid.edit.common import (
+    EPS,
+    check_blur,
+    check_layers,
+    default_blur,
+    gaussian,
+    safe_div,
+)
 
 __all__ = ["Merge", "Merged", "merge"]
 
@@ -78,6 +85,7 @@ def merge(
         :class:`Merged`.
     """
     check_layers(image, reflectance, shading, sigma, rho)
+    blur = check_blur(blur, "blur", image)
     sparse = reflectance * sigma
     detailed = rho * shading
     c1 = safe_div(image, sparse)

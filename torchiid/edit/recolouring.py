@@ -8,9 +8,8 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from torchiid.core.exceptions import ParameterError
 from torchiid.edit.colour import colour_ab, lab_to_linear, linear_to_lab
-from torchiid.edit.common import check_layers, region
+from torchiid.edit.common import check_layers, check_number, region
 
 __all__ = ["Recolour", "recolour"]
 
@@ -45,8 +44,8 @@ def recolour(
         ``(edited image, edited reflectance)``.
     """
     check_layers(reflectance, shading)
-    if chroma < 0:
-        raise ParameterError(f"chroma must be >= 0, got {chroma}")
+    hue = check_number(hue, "hue")
+    chroma = check_number(chroma, "chroma", low=0.0)
     m = region(mask, reflectance)
     lab = linear_to_lab(reflectance.clamp(0, 1))
     ab = lab[:, 1:]

@@ -7,8 +7,9 @@ import math
 import torch
 import torch.nn.functional as F
 
+from torchiid.core.check import check_finite
 from torchiid.core.exceptions import ParameterError
-from torchiid.edit.common import check_layers, region
+from torchiid.edit.common import check_layers, check_number, region
 
 __all__ = ["replace_albedo"]
 
@@ -42,8 +43,10 @@ def replace_albedo(
     tex = tex[:1].to(reflectance).clamp(0, 1)
     if fit not in ("tile", "stretch"):
         raise ParameterError(f"fit must be tile or stretch, got {fit!r}")
+    scale = check_number(scale, "scale")
     if scale <= 0:
         raise ParameterError(f"scale must be > 0, got {scale}")
+    check_finite(tex, "texture")
     new_r = reflectance.clone()
     for b in range(reflectance.shape[0]):
         ys, xs = torch.nonzero(m[b, 0], as_tuple=True)

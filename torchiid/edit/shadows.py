@@ -6,7 +6,15 @@ import torch
 from torch import nn
 
 from torchiid.core.exceptions import ParameterError
-from torchiid.edit.common import EPS, check_layers, gaussian, region, white_level
+from torchiid.edit.common import (
+    EPS,
+    check_blur,
+    check_layers,
+    check_number,
+    gaussian,
+    region,
+    white_level,
+)
 
 __all__ = ["SoftenShadows", "soften_shadows"]
 
@@ -39,6 +47,8 @@ def soften_shadows(
         ``(edited image, edited shading)``.
     """
     check_layers(reflectance, shading)
+    amount = check_number(amount, "amount")
+    feather = check_blur(feather, "feather", reflectance) or 0.0
     if amount > 1:
         raise ParameterError(f"amount must be <= 1, got {amount}")
     if not 0 < pivot <= 1:

@@ -12,7 +12,7 @@ from torch import nn
 from torchiid.core.exceptions import ParameterError
 from torchiid.core.stats import image_quantile
 from torchiid.edit.colour import colour_ab, lab_to_linear, linear_to_lab
-from torchiid.edit.common import check_layers, white_level
+from torchiid.edit.common import check_layers, check_number, white_level
 
 __all__ = ["IlluminationColour", "illumination_colour", "light_weights"]
 
@@ -28,6 +28,7 @@ def light_weights(
     """
     if not 0 < percentile < 1:
         raise ParameterError(f"percentile must be in (0, 1), got {percentile}")
+    radius = check_number(radius, "radius")
     if radius <= 0:
         raise ParameterError(f"radius must be > 0, got {radius}")
     y = shading.mean(1, keepdim=True)
@@ -73,6 +74,7 @@ def illumination_colour(
         ``(edited image, edited shading)``, both ``(B, 3, H, W)``.
     """
     check_layers(reflectance, shading)
+    strength = check_number(strength, "strength")
     tint_ab = colour_ab(tint, shading)
     s3 = shading.expand(-1, 3, -1, -1)
     white = white_level(s3)

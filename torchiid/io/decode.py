@@ -106,6 +106,12 @@ def read_array(path: Path) -> Decoded:
             with decoder_messages() as messages:
                 arr = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
         except cv2.error as exc:
+            if "CV_IO_MAX_IMAGE_PIXELS" in str(exc):  # OpenCV's cap on a header's pixel count
+                raise fail(
+                    path,
+                    "declares more pixels than OpenCV decodes (2^30 by default; the environment "
+                    "variable OPENCV_IO_MAX_IMAGE_PIXELS raises the cap)",
+                ) from None
             raise fail(path, f"is not an image OpenCV can decode ({one_line(exc)})") from None
         finally:
             del buf

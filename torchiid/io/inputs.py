@@ -99,7 +99,9 @@ def _walk(folder: Path, recursive: bool, excluded: set[tuple[int, int]]) -> Iter
     for entry in entries:
         try:
             if entry.is_file():
-                if _is_image(entry.name) and not (recursive and entry.name.startswith(".")):
+                # hidden files (macOS's ._IMG.jpg resource forks, editors' backups) are not
+                # photos of the folder; a hidden file named on its own is still taken
+                if _is_image(entry.name) and not entry.name.startswith("."):
                     yield Path(folder, entry.name)
             elif recursive and entry.is_dir(follow_symlinks=False):
                 if not entry.name.startswith(".") and not _same_folder(entry, excluded):

@@ -15,6 +15,7 @@ meaning, range and history of tuning are stated once, next to it.
 """
 
 import dataclasses
+import math
 import types
 from typing import Any, ClassVar
 
@@ -67,6 +68,9 @@ def switch(what: str, note: str = "ablations") -> Any:
 
 # valid text -> (test, what the error message says the value must be); a ``valid`` text may
 # add a remark after "; " (documentation only, checked by its group)
+#: the largest float32 value: a parameter beyond it overflows the solvers' float32 tensors
+FLOAT32_MAX = 3.4028234663852886e38
+
 _RULES: dict[str, tuple[Any, str]] = {
     "> 0": (lambda v: v > 0, "> 0"),
     ">= 0": (lambda v: v >= 0, ">= 0"),
@@ -107,7 +111,13 @@ def _typed(obj: object, f: dataclasses.Field, value: Any, must: str) -> Any:
         if isinstance(value, bool) or not isinstance(value, int | float):
             what = must if optional else "a number"
             raise ParameterError(f"parameter {f.name} must be {what}, got {value!r}")
-        return float(value)
+        value = float(value)
+        if math.isinf(value) or abs(value) > FLOAT32_MAX:  # NaN: the range rules refuse it
+            raise ParameterError(
+                f"parameter {f.name} must be a finite number within float32's range "
+                f"(|x| <= {FLOAT32_MAX:.3g}; the solvers compute in float32), got {value!r}"
+            )
+        return value
     return value
 
 

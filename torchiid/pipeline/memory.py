@@ -66,7 +66,12 @@ def memory_needed(
 
 
 def _gb(n: float) -> str:
-    """Bytes as GB with two significant decimals below 10 GB (``0.25 GB``, ``31.2 GB``)."""
+    """Bytes as GB: ``0.001 GB`` (below 0.01 GB), ``0.25 GB``, ``31.2 GB`` (from 10 GB).
+
+    Small figures keep their first significant digits, so a small limit is not shown as 0.
+    """
+    if n < 0.01e9:
+        return f"{n / 1e9:.2g} GB"
     return f"{n / 1e9:.2f} GB" if n < 10e9 else f"{n / 1e9:.1f} GB"
 
 

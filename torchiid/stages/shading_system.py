@@ -238,7 +238,9 @@ def _global_makers(
     dev, dt = image.device, image.dtype
     makers: dict[str, _Maker] = {}
     centers, feats = problem.patch_centers, problem.patch_features
-    if weights["S_c"] > 0 and (centers is not None or feats is not None):
+    # one patch (an image of one patch size) has no neighbour to tie it to: no S_c rows
+    single = feats is not None and feats.dim() == 3 and feats.shape[1] < 2
+    if weights["S_c"] > 0 and (centers is not None or feats is not None) and not single:
         if centers is None or feats is None:
             raise ParameterError("S_c needs both patch_centers and patch_features")
         lle = (o.lle_k, o.lle_reg, o.lle_neighbours)

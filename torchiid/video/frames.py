@@ -121,8 +121,7 @@ class FrameSource:
                 h, w = rgb.shape[:2]
                 if min(h, w) < MIN_FRAME_SIDE:
                     err = ImageError(
-                        f"{self.path}: frame {i + 1} is {w}x{h} px; at least "
-                        f"{MIN_FRAME_SIDE} px per side is needed"
+                        f"is {w}x{h} px; at least {MIN_FRAME_SIDE} px per side is needed"
                     )
                     yield FrameItem(i, name, error=err)
                 else:
@@ -185,4 +184,11 @@ def open_frames(path: str | os.PathLike, *, linear: bool = False) -> FrameSource
     if not container.streams.video:
         container.close()
         raise TorchiidError(f"{path}: holds no video stream")
+    context = container.streams.video[0].codec_context
+    w, h = int(context.width or 0), int(context.height or 0)
+    if w and h and min(w, h) < MIN_FRAME_SIDE:  # every frame has the stream's size
+        container.close()
+        raise TorchiidError(
+            f"{path}: its frames are {w}x{h} px; at least {MIN_FRAME_SIDE} px per side is needed"
+        )
     return FrameSource(path, "video", container=container, linear=linear)
