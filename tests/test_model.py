@@ -161,6 +161,21 @@ def test_an_image_of_one_patch_decomposes(size, max_side):
     assert bool(torch.isfinite(out.shading).all()) and float(out.shading.min()) > 0
 
 
+def test_a_solve_whose_residual_overflowed_stops_the_decomposition():
+    # many alternations scale the schedule's weights by tau^(k-1) until float32 overflows
+    # (with tau 1.2, alternation 328 on a 64x64 image): a result from there is meaningless
+    from types import SimpleNamespace
+
+    from torchiid.model import _check_finite_solves
+
+    ok = SimpleNamespace(stage="reflectance", alternation=3, residual=0.01)
+    _check_finite_solves([ok], Parameters(), 3)  # finite: nothing to say
+    bad = SimpleNamespace(stage="shading", alternation=3, residual=float("inf"))
+    with pytest.raises(ParameterError, match=r"shading solve of alternation 3 diverged.*1\.44"):
+        _check_finite_solves([ok, bad], Parameters(), 3)
+    _check_finite_solves([bad], Parameters(), 4)  # an earlier alternation was checked then
+
+
 def test_the_module_names_bad_params_when_it_is_made():
     with pytest.raises(ParameterError, match="params must be a torchiid.Parameters, got dict"):
         IntrinsicDecomposer({"iterations": 1})

@@ -19,6 +19,7 @@ px on the longer side); the shading is brought back to the input's resolution ed
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 
@@ -164,6 +165,7 @@ def decompose(
         shading, reflectance = params.alternation(k)  # the §3.4 schedule's weights
         run.shading_step(k, shading)
         run.reflectance_step(k, reflectance)
+        _check_finite_solves(run.solves, params, k)
         if progress is not None:
             progress("iteration", k - work.first + 1, total)
     times.update(run.times)
@@ -177,6 +179,24 @@ def decompose(
     times["total"] = time.perf_counter() - t_start
     kept = features if return_features else None
     return _decomposition(work, layers, params, times, run.solves, kept)
+
+
+def _check_finite_solves(solves: list, params: Parameters, k: int) -> None:
+    """Stop a decomposition whose solve left the numbers float32 holds, naming the likely cause.
+
+    A residual that is not finite means the system's values overflowed: no later alternation
+    can recover, and the layers would be meaningless.
+    """
+    bad = next((s for s in solves if s.alternation == k and not math.isfinite(s.residual)), None)
+    if bad is None:
+        return
+    grown = params.tau ** (k - 1) if params.tau >= 1 else params.tau ** (1 - k)
+    raise ParameterError(
+        f"the {bad.stage} solve of alternation {k} diverged (its residual is not finite): the "
+        f"weights overflow float32; after {k - 1} alternations the §3.4 schedule has scaled "
+        f"them by up to tau^{k - 1} = {grown:.3g} (tau {params.tau:g}), so use fewer "
+        "iterations, a tau closer to 1 or smaller weights"
+    )
 
 
 def _checked_params(params: Parameters | None) -> Parameters:

@@ -35,6 +35,29 @@ def test_numbers_out_of_range_are_usage_errors(files, tmp_path, capsys, option, 
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["merge", "--blur", "1e9"], "blur must be <= 80"),
+        (["soften-shadows", "--mask", "MASK", "--feather", "-1"], "feather must be >= 0"),
+        (["illumination-intensity", "--strength", "-5"], "strength must be >= 0"),
+        (["replace-albedo", "--mask", "MASK", "--texture", "TEX", "--scale", "1e5"], "at most 40"),
+    ],
+)
+def test_numbers_are_checked_before_the_decomposition(
+    files, tmp_path, capsys, monkeypatch, extra, message
+):
+    import torchiid.commands.edit as command
+
+    d, _ = files
+    monkeypatch.setattr(command, "_decompose", lambda *a: pytest.fail("decomposed first"))
+    extra = [str(d / "mask.png") if x == "MASK" else str(d / "tex.png") if x == "TEX" else x
+             for x in extra]  # fmt: skip
+    args = ["edit", extra[0], str(d / "m.png"), "-o", str(tmp_path / "x"), *extra[1:]]
+    assert main(args) == 2
+    assert message in capsys.readouterr().err
+
+
 def test_a_photo_the_decomposition_refuses_is_named(files, tmp_path, capsys):
     d, _ = files
     args = ["edit", "merge", str(d / "m.png"), "-o", str(tmp_path / "x"), "--memory-limit", "0.001"]

@@ -60,6 +60,10 @@ def _layers():
         (lambda r, s, m: merge(r * s, r, s, s, r, blur=1e9), "blur must be <= 40"),
         (lambda r, s, m: merge(r * s, r, s, s, r, blur=-1.0), "blur must be >= 0"),
         (lambda r, s, m: illumination_intensity(r * s, r, s, s, r, -5.0), "strength must be >= 0"),
+        (
+            lambda r, s, m: replace_albedo(r, s, m, torch.rand(3, 8, 8), scale=21.0),
+            "scale must be at most 20",
+        ),
     ],
 )
 def test_edit_numbers_out_of_range_raise_parameter_errors(edit, message):

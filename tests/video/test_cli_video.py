@@ -280,8 +280,15 @@ def test_video_file_in_and_preview_out(seq, tmp_path):
     # the middle panel is the reflectance PNG
     r = cv2.imread(str(out / "frame-000002-reflectance.png"))[..., ::-1].astype(float)
     assert np.abs(decoded[1][:, 100:196].astype(float) - r).mean() < 12
-    # an existing preview is kept without --overwrite, and reported
+    # run again: every frame and the preview are done
+    preview = (out / "preview.mp4").read_bytes()
+    assert main(["decompose-video", str(clip), "-o", str(out), "--preview", *FAST]) == 0
+    # a frame written now is missing from the kept preview: reported, the preview kept
+    for f in out.glob("frame-000004-*"):
+        f.unlink()
     assert main(["decompose-video", str(clip), "-o", str(out), "--preview", *FAST]) == 1
+    assert (out / "preview.mp4").read_bytes() == preview
+    assert (out / "frame-000004-reflectance.png").exists()
 
 
 def test_video_file_without_pyav(seq, tmp_path, monkeypatch, capsys):

@@ -109,7 +109,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chroma", type=finite_float, default=1.0, help="recolour: chroma factor")
     p.add_argument("--colour", help="recolour: target colour of the region")
     p.add_argument(
-        "--amount", type=finite_float, default=0.5, help="soften-shadows: <= 1; < 0 hardens"
+        "--amount", type=finite_float, default=0.5, help="soften-shadows: in [-10, 1]; < 0 hardens"
     )
     p.add_argument("--feather", type=finite_float, default=0.0, help="soften-shadows: mask edge px")
     add_parameter_options(p)
@@ -188,6 +188,32 @@ def _check_outputs(out: Path, names: list[str], overwrite: bool) -> None:
             raise OutputError(f"{target}: is a folder; cannot replace it by an output")
         if os.path.lexists(target) and not overwrite:
             raise OutputError(f"{target} exists; pass --overwrite to replace it")
+
+
+def _check_numbers(args: argparse.Namespace, image: Any, texture: Any) -> None:
+    """The options' numbers, checked as the edits check them (ParameterError, status 2)."""
+    from torchiid.core.exceptions import ParameterError
+    from torchiid.edit.common import FACTOR_LIMIT, check_blur, check_number
+    from torchiid.edit.shadows import MOST_HARDENING
+
+    check_blur(args.blur, "blur", image)
+    check_blur(args.feather, "feather", image)
+    if args.strength is not None:
+        low = 0.0 if args.operation == "illumination-intensity" else -FACTOR_LIMIT
+        check_number(args.strength, "strength", low=low, high=FACTOR_LIMIT)
+    check_number(args.chroma, "chroma", low=0.0, high=FACTOR_LIMIT)
+    check_number(args.amount, "amount", low=MOST_HARDENING, high=1.0)
+    if not 0 < args.percentile < 1:
+        raise ParameterError(f"percentile must be in (0, 1), got {args.percentile}")
+    for name in ("radius", "scale"):
+        if not getattr(args, name) > 0:
+            raise ParameterError(f"{name} must be > 0, got {getattr(args, name)}")
+    if texture is not None and args.fit == "tile":
+        from torchiid.edit.retexture import max_scale
+
+        most = max_scale(image, texture)
+        if args.scale > most:
+            raise ParameterError(f"scale must be at most {most:.3g} for this texture and photo")
 
 
 def _decompose(args: argparse.Namespace, batch: torch.Tensor, params: Any) -> Any:
@@ -283,6 +309,7 @@ def run(args: argparse.Namespace) -> int:
     texture = None
     if args.texture is not None:
         texture = load_image(args.texture, linear=args.linear, min_side=1).image.to(device)
+    _check_numbers(args, image, texture)  # before a decomposition is spent on them
     tag = f"{stem}-{op}"
     decomposed = args.from_dir is None
     _check_outputs(out, _output_names(args, stem, tag, decomposed), args.overwrite)

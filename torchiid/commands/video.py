@@ -258,11 +258,11 @@ def run(args: argparse.Namespace) -> int:
 
     failures = written = seen = skipped = 0
     preview = None
+    kept_preview = None  # an earlier run's preview, kept: stale if this run writes a frame
     if args.preview:
         target = out / PREVIEW_NAME
         if os.path.lexists(target) and not args.overwrite:
-            failures += 1
-            tell(f"torchiid: error: {target} exists; pass --overwrite to replace it")
+            kept_preview = target
         else:
             preview = PreviewWriter(target, args.fps or source.fps or 24.0, overwrite=True)
     video = VideoDecomposer(params, options)
@@ -379,6 +379,12 @@ def run(args: argparse.Namespace) -> int:
     bar.close()
     if seen == 0:
         raise TorchiidError(f"{args.input}: holds no frames")
+    if kept_preview is not None and written:
+        failures += 1
+        tell(
+            f"torchiid: error: {kept_preview} exists and lacks the frames written now; pass "
+            "--overwrite to replace it"
+        )
     if skipped and not getattr(args, "quiet", False):
         print(
             f"torchiid: {written} frame(s) written, {skipped} skipped (written by an earlier "

@@ -61,6 +61,11 @@ def safe_div(a: torch.Tensor, b: torch.Tensor, default: float = 1.0) -> torch.Te
     return torch.where(ok, a / torch.where(ok, b, torch.ones_like(b)), torch.full_like(a, default))
 
 
+#: the largest factor an edit takes (a chroma factor, a light strength, a shadow amount's
+#: size): far beyond it every colour or light saturates, and float32 overflows into NaN
+FACTOR_LIMIT = 1000.0
+
+
 def check_number(
     value: float, name: str, *, low: float | None = None, high: float | None = None
 ) -> float:

@@ -19,6 +19,11 @@ from torchiid.edit.common import (
 __all__ = ["SoftenShadows", "soften_shadows"]
 
 
+#: the lowest ``amount``: the log-shading's contrast grows by ``1 − amount`` around the pivot,
+#: and at 11x a highlight a thousand times the pivot already reaches e^76 (float32 ends at e^88)
+MOST_HARDENING = -10.0
+
+
 def soften_shadows(
     reflectance: torch.Tensor,
     shading: torch.Tensor,
@@ -38,7 +43,7 @@ def soften_shadows(
     Args:
         reflectance: ``(B, 3, H, W)``.
         shading: ``(B, 1|3, H, W)``.
-        amount: at most 1; 0 changes nothing.
+        amount: in [-10, 1]; 0 changes nothing.
         mask: ``(B, 1, H, W)`` bool: edit only there (default: everywhere).
         pivot: the quantile that stays where it is.
         feather: σ in pixels of a Gaussian blur of the mask's edge (0: hard edge).
@@ -47,7 +52,7 @@ def soften_shadows(
         ``(edited image, edited shading)``.
     """
     check_layers(reflectance, shading)
-    amount = check_number(amount, "amount")
+    amount = check_number(amount, "amount", low=MOST_HARDENING)
     feather = check_blur(feather, "feather", reflectance) or 0.0
     if amount > 1:
         raise ParameterError(f"amount must be <= 1, got {amount}")

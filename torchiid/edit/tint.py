@@ -12,7 +12,7 @@ from torch import nn
 from torchiid.core.exceptions import ParameterError
 from torchiid.core.stats import image_quantile
 from torchiid.edit.colour import colour_ab, lab_to_linear, linear_to_lab
-from torchiid.edit.common import check_layers, check_number, white_level
+from torchiid.edit.common import FACTOR_LIMIT, check_layers, check_number, white_level
 
 __all__ = ["IlluminationColour", "illumination_colour", "light_weights"]
 
@@ -74,7 +74,7 @@ def illumination_colour(
         ``(edited image, edited shading)``, both ``(B, 3, H, W)``.
     """
     check_layers(reflectance, shading)
-    strength = check_number(strength, "strength")
+    strength = check_number(strength, "strength", low=-FACTOR_LIMIT, high=FACTOR_LIMIT)
     tint_ab = colour_ab(tint, shading)
     s3 = shading.expand(-1, 3, -1, -1)
     white = white_level(s3)

@@ -6,8 +6,8 @@ found under, with ``/`` between folders. ``torchiid decompose`` writes the image
 ``IMG_0001.jpg`` in different folders never write the same files. The roots:
 
 * a **file** named on its own: its own folder (key = the file's stem);
-* a **folder**: the folder (its image files; with ``recursive``, those of its subfolders too,
-  hidden files and folders excepted, symbolic links to folders not followed);
+* a **folder**: the folder (its image files but hidden ones; with ``recursive``, those of its
+  subfolders too, hidden folders excepted, symbolic links to folders not followed);
 * a **glob** (``photos/*/*.jpg``, ``photos/**/*.png``; ``**`` matches any depth): the folder
   before its first wildcard; image files only (none from the output folder below it);
 * a **list file** (:func:`read_list_file`): the deepest folder holding every image it lists.

@@ -15,7 +15,6 @@ Every parameter also has a flat name, the same in every group (``lambda_l`` is
 
 import dataclasses
 import json
-import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -76,13 +75,7 @@ class Parameters:
     output: OutputParameters = _group(
         "the working resolution and the full-resolution layers", OutputParameters
     )
-    iterations: int = param(
-        5,
-        "alternations k of Stage 1 and Stage 2; the schedule moves its weights tau^(2(k-1)) "
-        "apart, so k is at most where that reaches 2^23 (44 with tau 1.2)",
-        paper=5,
-        valid="> 0",
-    )
+    iterations: int = param(5, "alternations k of Stage 1 and Stage 2", paper=5, valid="> 0")
     tau: float = param(
         1.2,
         "after each alternation the mid-level, global and data weights are multiplied by τ "
@@ -120,7 +113,6 @@ class Parameters:
         check_fields(self)
         if not (self.shading.stage1 or self.reflectance.stage2):
             raise ParameterError("at least one of stage1 and stage2 must be on")
-        _check_schedule(self.iterations, self.tau)
 
     def __getattr__(self, name: str) -> Any:
         # only called when the normal lookup fails: a grouped parameter's flat name is not an
@@ -242,29 +234,6 @@ def _package_version() -> str:
     ``import torchiid`` here would tie this module to the root, which imports it.
     """
     return sys.modules[__name__.partition(".")[0]].__version__
-
-
-#: the largest factor the §3.4 schedule may put between a weight it raises and one it lowers:
-#: float32's relative precision, 2^-23, beyond which the lowered terms vanish in the sums of
-#: the raised ones and the solves decide nothing about them
-SCHEDULE_SPREAD = 2.0**23
-
-
-def _check_schedule(iterations: int, tau: float) -> None:
-    """Refuse ``iterations`` and ``tau`` whose weights drift apart by more than float32 holds.
-
-    Each alternation multiplies some weights by ``tau`` and divides others by it, so after
-    ``k`` alternations they stand ``tau^(2(k-1))`` further apart than configured.
-    """
-    step = abs(math.log(tau))
-    if step == 0 or 2 * (iterations - 1) * step <= math.log(SCHEDULE_SPREAD):
-        return
-    most = 1 + math.floor(math.log(SCHEDULE_SPREAD) / (2 * step))
-    raise ParameterError(
-        f"iterations {iterations} with tau {tau:g}: the §3.4 schedule would move the weights it "
-        f"raises and those it lowers tau^{2 * (iterations - 1)} apart, beyond float32's "
-        f"precision (2^23); use at most {most} iterations with this tau, or a tau closer to 1"
-    )
 
 
 def _check_names(values: dict[str, Any]) -> None:

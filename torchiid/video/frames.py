@@ -38,7 +38,8 @@ class FrameItem:
         image: ``(3, H, W)`` float32 linear RGB, or ``None`` when it could not be read.
         mask: ``(1, H, W)`` bool from an alpha channel, or ``None``.
         error: why the frame could not be read (a :class:`~torchiid.core.exceptions.
-            TorchiidError` naming the file), or ``None``.
+            TorchiidError` naming a folder's file; a video's frame is named by ``name``), or
+            ``None``.
     """
 
     index: int
@@ -49,10 +50,15 @@ class FrameItem:
 
 
 def list_images(folder: Path) -> list[Path]:
-    """The image files of a folder (suffixes of :data:`torchiid.io.IMAGE_SUFFIXES`), sorted."""
+    """The image files of a folder (suffixes of :data:`torchiid.io.IMAGE_SUFFIXES`), sorted.
+
+    Hidden files (macOS's ``._frame.png`` beside each frame) are left out.
+    """
     try:
         found = sorted(
-            q for q in folder.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_SUFFIXES
+            q
+            for q in folder.iterdir()
+            if q.is_file() and q.suffix.lower() in IMAGE_SUFFIXES and not q.name.startswith(".")
         )
     except OSError as exc:
         raise TorchiidError(f"{folder}: cannot list ({exc.strerror or exc})") from None
