@@ -58,6 +58,16 @@ def test_numbers_are_checked_before_the_decomposition(
     assert message in capsys.readouterr().err
 
 
+def test_method_options_with_from_are_said_to_be_unused(files, tmp_path, capsys):
+    d, out = files
+    args = ["edit", "merge", str(d / "m.png"), "--from", str(out), "-o", str(tmp_path / "x")]
+    assert main([*args, "--preset", "converged", "--iterations", "2"]) == 0
+    err = capsys.readouterr().err
+    assert "note: --preset, --iterations not used: --from reads the layers" in err
+    assert main([*args, "--overwrite"]) == 0  # no method option: no note
+    assert "not used" not in capsys.readouterr().err
+
+
 def test_a_photo_the_decomposition_refuses_is_named(files, tmp_path, capsys):
     d, _ = files
     args = ["edit", "merge", str(d / "m.png"), "-o", str(tmp_path / "x"), "--memory-limit", "0.001"]

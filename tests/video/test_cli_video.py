@@ -101,7 +101,7 @@ def test_existing_outputs_are_kept_and_the_chain_resumes(frames, tmp_path, capsy
     (out / "frame-000004-preview.png").unlink()
     assert main(["decompose-video", str(frames), "-o", str(out), *FAST]) == 1
     err = capsys.readouterr().err
-    assert "frame-000004-" in err and "exists; pass --overwrite" in err
+    assert "frame-000004-*: written earlier without frame-000004-preview.png" in err
     assert "1 of 4 frame(s) failed" in err and "0 frame(s) written, 3 skipped" in err
     assert main(["decompose-video", str(frames), "-o", str(out), "--overwrite", *FAST]) == 0
 

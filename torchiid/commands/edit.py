@@ -190,6 +190,10 @@ def _check_outputs(out: Path, names: list[str], overwrite: bool) -> None:
             raise OutputError(f"{target} exists; pass --overwrite to replace it")
 
 
+#: the options that choose how a photo is decomposed: no use with --from
+_METHOD_OPTIONS = ("params", "variant", "iterations", "max_side")
+
+
 def _check_numbers(args: argparse.Namespace, image: Any, texture: Any) -> None:
     """The options' numbers, checked as the edits check them (ParameterError, status 2)."""
     from torchiid.core.exceptions import ParameterError
@@ -290,6 +294,15 @@ def run(args: argparse.Namespace) -> int:
     op = args.operation
     needs_mask, needs_stage1 = OPERATIONS[op]
     params = params_from_args(args)
+    if args.from_dir is not None:
+        unused = [f"--{name.replace('_', '-')}" for name in _METHOD_OPTIONS if getattr(args, name)]
+        unused = (["--preset"] if args.preset != "default" else []) + unused
+        if unused:
+            say(
+                args,
+                f"torchiid: note: {', '.join(unused)} not used: --from reads the layers of "
+                f"{args.from_dir} as they were decomposed",
+            )
     device = resolve_device(args.device)
     out: Path = args.output
     check_output_folder(out)

@@ -303,6 +303,12 @@ def run(args: argparse.Namespace) -> int:
                         skipped += 1
                         log.info("%s: %s/%s-* exist; skipped", where, out, stem)
                         continue
+                    if resumed:  # e.g. written without the --save-npy files asked for now
+                        missing = [n for n in names if not os.path.lexists(out / n)]
+                        raise OutputError(
+                            f"{out / stem}-*: written earlier without {', '.join(missing)}; "
+                            "pass --overwrite to write the frame again"
+                        )
                     raise OutputError(f"{existing[0]} exists; pass --overwrite to replace it")
                 t0 = time.perf_counter()
                 frame = _decompose_frame(
