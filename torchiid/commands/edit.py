@@ -196,28 +196,14 @@ _METHOD_OPTIONS = ("params", "variant", "iterations", "max_side")
 
 def _check_numbers(args: argparse.Namespace, image: Any, texture: Any) -> None:
     """The options' numbers, checked as the edits check them (ParameterError, status 2)."""
-    from torchiid.core.exceptions import ParameterError
-    from torchiid.edit.common import FACTOR_LIMIT, check_blur, check_number
-    from torchiid.edit.shadows import MOST_HARDENING
+    from torchiid.edit.common import check_edit_numbers
 
-    check_blur(args.blur, "blur", image)
-    check_blur(args.feather, "feather", image)
-    if args.strength is not None:
-        low = 0.0 if args.operation == "illumination-intensity" else -FACTOR_LIMIT
-        check_number(args.strength, "strength", low=low, high=FACTOR_LIMIT)
-    check_number(args.chroma, "chroma", low=0.0, high=FACTOR_LIMIT)
-    check_number(args.amount, "amount", low=MOST_HARDENING, high=1.0)
-    if not 0 < args.percentile < 1:
-        raise ParameterError(f"percentile must be in (0, 1), got {args.percentile}")
-    for name in ("radius", "scale"):
-        if not getattr(args, name) > 0:
-            raise ParameterError(f"{name} must be > 0, got {getattr(args, name)}")
-    if texture is not None and args.fit == "tile":
-        from torchiid.edit.retexture import max_scale
-
-        most = max_scale(image, texture)
-        if args.scale > most:
-            raise ParameterError(f"scale must be at most {most:.3g} for this texture and photo")
+    check_edit_numbers(
+        image, blur=args.blur, feather=args.feather, strength=args.strength,
+        intensity=args.operation == "illumination-intensity", hue=args.hue, chroma=args.chroma,
+        amount=args.amount, percentile=args.percentile, radius=args.radius, scale=args.scale,
+        texture=texture if args.fit == "tile" else None,
+    )  # fmt: skip
 
 
 def _decompose(args: argparse.Namespace, batch: torch.Tensor, params: Any) -> Any:

@@ -61,8 +61,8 @@ def safe_div(a: torch.Tensor, b: torch.Tensor, default: float = 1.0) -> torch.Te
     return torch.where(ok, a / torch.where(ok, b, torch.ones_like(b)), torch.full_like(a, default))
 
 
-#: the largest factor an edit takes (a chroma factor, a light strength, a shadow amount's
-#: size): far beyond it every colour or light saturates, and float32 overflows into NaN
+#: the largest factor an edit takes (a chroma factor, a light strength): far beyond it every
+#: colour or light saturates, and float32 overflows into NaN
 FACTOR_LIMIT = 1000.0
 
 
@@ -83,15 +83,70 @@ def check_number(
     return x
 
 
-def check_blur(sigma: float | None, name: str, like: torch.Tensor) -> float | None:
-    """A Gaussian σ in pixels: ``None``, or finite in ``[0, the image's longer side]``.
+#: the lowest ``amount`` of :func:`~torchiid.edit.shadows.soften_shadows`: the log-shading's
+#: contrast grows by ``1 − amount`` around the pivot, and at 11x a highlight a thousand times
+#: the pivot already reaches e^76 (float32 ends at e^88)
+MOST_HARDENING = -10.0
 
-    A σ beyond the longer side blurs the image to its mean, as the longer side does, and its
-    padding would take memory in proportion to σ².
+#: the largest tile of :func:`~torchiid.edit.retexture.replace_albedo`, as a multiple of the
+#: photo's longer side: a larger one shows only its corner, and would be made whole first
+MAX_TILE = 4
+
+
+def check_edit_numbers(
+    like: torch.Tensor,
+    *,
+    blur: float | None = None,
+    feather: float | None = None,
+    strength: float | None = None,
+    intensity: bool = False,
+    hue: float | None = None,
+    chroma: float | None = None,
+    amount: float | None = None,
+    percentile: float | None = None,
+    radius: float | None = None,
+    scale: float | None = None,
+    texture: torch.Tensor | None = None,
+) -> None:
+    """Refuse an edit's number that is not finite or outside its range, naming it.
+
+    Every edit checks its own numbers here, and ``torchiid edit`` all of its options before
+    it decomposes the photo. ``None`` skips a number. Bounds: ``blur`` and ``feather`` (σ in
+    pixels) from 0 to ``like``'s longer side (a larger σ blurs to the mean as that does, and
+    its padding grows with σ²); ``strength`` and ``chroma`` at most :data:`FACTOR_LIMIT`
+    (``strength`` at least 0 for the light intensity (``intensity``), at least
+    −:data:`FACTOR_LIMIT` for the light colour; ``chroma`` at least 0); ``amount`` in
+    ``[MOST_HARDENING, 1]``; ``percentile`` in (0, 1); ``radius`` and ``scale`` above 0, and
+    with a ``texture`` to tile, its tiles at most :data:`MAX_TILE` × ``like``'s longer side.
+
+    Raises:
+        ParameterError: the first number out of its range.
     """
-    if sigma is None:
-        return None
-    return check_number(sigma, name, low=0.0, high=float(max(like.shape[-2:])))
+    side = float(max(like.shape[-2:]))
+    for name, sigma in (("blur", blur), ("feather", feather)):
+        if sigma is not None:
+            check_number(sigma, name, low=0.0, high=side)
+    if strength is not None:
+        low = 0.0 if intensity else -FACTOR_LIMIT  # below 0 the intensity makes S negative
+        check_number(strength, "strength", low=low, high=FACTOR_LIMIT)
+    if hue is not None:
+        check_number(hue, "hue")
+    if chroma is not None:
+        check_number(chroma, "chroma", low=0.0, high=FACTOR_LIMIT)
+    if amount is not None:
+        check_number(amount, "amount", low=MOST_HARDENING, high=1.0)
+    if percentile is not None and not 0 < check_number(percentile, "percentile") < 1:
+        raise ParameterError(f"percentile must be in (0, 1), got {percentile}")
+    for name, value in (("radius", radius), ("scale", scale)):
+        if value is not None and not check_number(value, name) > 0:
+            raise ParameterError(f"{name} must be > 0, got {value}")
+    if scale is not None and texture is not None:
+        most = MAX_TILE * side / max(texture.shape[-2:])
+        if scale > most:
+            raise ParameterError(
+                f"scale must be at most {most:.3g} for this texture and photo (tiles up to "
+                f"{MAX_TILE}x the photo's longer side), got {scale:g}"
+            )
 
 
 def check_layers(image: torch.Tensor, *others: torch.Tensor | None) -> None:

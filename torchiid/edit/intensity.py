@@ -8,10 +8,8 @@ from torch import nn
 from torchiid.core.exceptions import ParameterError
 from torchiid.edit.common import (
     EPS,
-    FACTOR_LIMIT,
-    check_blur,
+    check_edit_numbers,
     check_layers,
-    check_number,
     default_blur,
     gaussian,
     safe_div,
@@ -71,8 +69,7 @@ def illumination_intensity(
     if combine not in COMBINE:
         raise ParameterError(f"combine must be one of {', '.join(COMBINE)}, got {combine!r}")
     check_layers(image, reflectance, shading, sigma, rho)
-    strength = check_number(strength, "strength", low=0.0, high=FACTOR_LIMIT)  # < 0: S < 0
-    blur = check_blur(blur, "blur", image)
+    check_edit_numbers(image, strength=strength, intensity=True, blur=blur)
     if merged is None:
         merged = merge(image, reflectance, shading, sigma, rho)
     if blur is None:

@@ -9,7 +9,7 @@ from torch import nn
 
 from torchiid.edit.common import (
     EPS,
-    check_blur,
+    check_edit_numbers,
     check_layers,
     default_blur,
     gaussian,
@@ -85,7 +85,7 @@ def merge(
         :class:`Merged`.
     """
     check_layers(image, reflectance, shading, sigma, rho)
-    blur = check_blur(blur, "blur", image)
+    check_edit_numbers(image, blur=blur)
     sparse = reflectance * sigma
     detailed = rho * shading
     c1 = safe_div(image, sparse)

@@ -9,7 +9,7 @@ import torch
 from torch import nn
 
 from torchiid.edit.colour import colour_ab, lab_to_linear, linear_to_lab
-from torchiid.edit.common import FACTOR_LIMIT, check_layers, check_number, region
+from torchiid.edit.common import check_edit_numbers, check_layers, region
 
 __all__ = ["Recolour", "recolour"]
 
@@ -44,8 +44,7 @@ def recolour(
         ``(edited image, edited reflectance)``.
     """
     check_layers(reflectance, shading)
-    hue = check_number(hue, "hue")
-    chroma = check_number(chroma, "chroma", low=0.0, high=FACTOR_LIMIT)
+    check_edit_numbers(reflectance, hue=hue, chroma=chroma)
     m = region(mask, reflectance)
     lab = linear_to_lab(reflectance.clamp(0, 1))
     ab = lab[:, 1:]

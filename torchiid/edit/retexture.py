@@ -9,13 +9,9 @@ import torch.nn.functional as F
 
 from torchiid.core.check import check_finite
 from torchiid.core.exceptions import ParameterError
-from torchiid.edit.common import check_layers, check_number, region
+from torchiid.edit.common import check_edit_numbers, check_layers, region
 
 __all__ = ["replace_albedo"]
-
-
-#: the largest tile, as a multiple of the photo's longer side
-_MAX_TILE = 4
 
 
 def replace_albedo(
@@ -47,15 +43,7 @@ def replace_albedo(
     tex = tex[:1].to(reflectance).clamp(0, 1)
     if fit not in ("tile", "stretch"):
         raise ParameterError(f"fit must be tile or stretch, got {fit!r}")
-    scale = check_number(scale, "scale")
-    if scale <= 0:
-        raise ParameterError(f"scale must be > 0, got {scale}")
-    most = max_scale(reflectance, tex)
-    if fit == "tile" and scale > most:
-        raise ParameterError(
-            f"scale must be at most {most:.3g} for this texture and photo (tiles up to "
-            f"{_MAX_TILE}x the photo's longer side), got {scale:g}"
-        )
+    check_edit_numbers(reflectance, scale=scale, texture=tex if fit == "tile" else None)
     check_finite(tex, "texture")
     new_r = reflectance.clone()
     for b in range(reflectance.shape[0]):
@@ -67,14 +55,6 @@ def replace_albedo(
         inside = m[b, :, y0:y1, x0:x1]
         new_r[b, :, y0:y1, x0:x1] = torch.where(inside, patch[0], new_r[b, :, y0:y1, x0:x1])
     return new_r * shading, new_r
-
-
-def max_scale(photo: torch.Tensor, texture: torch.Tensor) -> float:
-    """The largest tile ``scale`` for ``texture`` on ``photo``: tiles up to 4x its longer side.
-
-    A tile beyond a few times the photo shows only its corner, and would be made whole first.
-    """
-    return _MAX_TILE * max(photo.shape[-2:]) / max(texture.shape[-2:])
 
 
 def _patch(tex: torch.Tensor, size: tuple[int, int], fit: str, scale: float) -> torch.Tensor:

@@ -8,20 +8,14 @@ from torch import nn
 from torchiid.core.exceptions import ParameterError
 from torchiid.edit.common import (
     EPS,
-    check_blur,
+    check_edit_numbers,
     check_layers,
-    check_number,
     gaussian,
     region,
     white_level,
 )
 
 __all__ = ["SoftenShadows", "soften_shadows"]
-
-
-#: the lowest ``amount``: the log-shading's contrast grows by ``1 − amount`` around the pivot,
-#: and at 11x a highlight a thousand times the pivot already reaches e^76 (float32 ends at e^88)
-MOST_HARDENING = -10.0
 
 
 def soften_shadows(
@@ -52,10 +46,7 @@ def soften_shadows(
         ``(edited image, edited shading)``.
     """
     check_layers(reflectance, shading)
-    amount = check_number(amount, "amount", low=MOST_HARDENING)
-    feather = check_blur(feather, "feather", reflectance) or 0.0
-    if amount > 1:
-        raise ParameterError(f"amount must be <= 1, got {amount}")
+    check_edit_numbers(reflectance, amount=amount, feather=feather)
     if not 0 < pivot <= 1:
         raise ParameterError(f"pivot must be in (0, 1], got {pivot}")
     y = shading.mean(1, keepdim=True).clamp_min(EPS)

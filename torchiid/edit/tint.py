@@ -9,10 +9,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from torchiid.core.exceptions import ParameterError
 from torchiid.core.stats import image_quantile
 from torchiid.edit.colour import colour_ab, lab_to_linear, linear_to_lab
-from torchiid.edit.common import FACTOR_LIMIT, check_layers, check_number, white_level
+from torchiid.edit.common import check_edit_numbers, check_layers, white_level
 
 __all__ = ["IlluminationColour", "illumination_colour", "light_weights"]
 
@@ -26,11 +25,7 @@ def light_weights(
     quantile; a pixel at distance ``d`` from the nearest of them gets ``1 - smoothstep(d / r)``
     with ``r = radius · longer side``, so pixels farther than ``r`` get exactly 0.
     """
-    if not 0 < percentile < 1:
-        raise ParameterError(f"percentile must be in (0, 1), got {percentile}")
-    radius = check_number(radius, "radius")
-    if radius <= 0:
-        raise ParameterError(f"radius must be > 0, got {radius}")
+    check_edit_numbers(shading, percentile=percentile, radius=radius)
     y = shading.mean(1, keepdim=True)
     q = image_quantile(y, percentile).view(-1, 1, 1, 1).to(y)
     light = (y >= q).cpu().numpy()
@@ -74,7 +69,7 @@ def illumination_colour(
         ``(edited image, edited shading)``, both ``(B, 3, H, W)``.
     """
     check_layers(reflectance, shading)
-    strength = check_number(strength, "strength", low=-FACTOR_LIMIT, high=FACTOR_LIMIT)
+    check_edit_numbers(shading, strength=strength)
     tint_ab = colour_ab(tint, shading)
     s3 = shading.expand(-1, 3, -1, -1)
     white = white_level(s3)
