@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pytest
 from skimage import data
 
@@ -298,6 +299,56 @@ def test_the_default_preset_s_caps_are_no_news(photo, tmp_path, capsys):
     assert main(["decompose", str(photo / "cat.png"), "-o", str(tmp_path / "v"), *FAST, "-v"]) == 0
     err = capsys.readouterr().err
     assert "cat.png: 2 of 2 solver runs stopped before their tolerance (the preset's caps" in err
+
+
+def test_negatives_set_to_0_are_a_note_and_recorded(photo, tmp_path, capsys):
+    linear = (cv2.imread(str(photo / "cat.png"))[..., ::-1] / 255.0).astype(np.float32) ** 2.2
+    linear[3, 4, 1] = -0.01  # a renderer's ringing beside an edge
+    np.save(tmp_path / "render.npy", linear)
+    out = tmp_path / "out"
+    assert main(["decompose", str(tmp_path / "render.npy"), "-o", str(out), *FAST]) == 0
+    err = capsys.readouterr().err
+    assert (
+        "torchiid: note: " in err and "render.npy: 1 negative value (down to -0.01) set to 0" in err
+    )
+    assert json.loads((out / "render-info.json").read_text())["negatives_set_to_zero"] == 1
+
+
+def test_a_large_declared_size_fails_before_its_pixels_are_decoded(tmp_path, monkeypatch, capsys):
+    import struct
+    import zlib
+
+    import torchiid.collection.job as job
+
+    ihdr = b"IHDR" + struct.pack(">IIBBBBB", 30000, 20000, 8, 2, 0, 0, 0)
+    end = struct.pack(">I", 0) + b"IEND" + struct.pack(">I", zlib.crc32(b"IEND"))
+    png = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + ihdr + struct.pack(">I", zlib.crc32(ihdr))
+    png += end
+    (tmp_path / "declared.png").write_bytes(png)  # a few bytes, 600 million pixels declared
+
+    def never(*args, **kwargs):
+        raise AssertionError("decoded")
+
+    monkeypatch.setattr(job, "load_image", never)
+    argv = ["decompose", str(tmp_path / "declared.png"), "-o", str(tmp_path / "out")]
+    assert main([*argv, *FAST, "--memory-limit", "2"]) == 1
+    err = capsys.readouterr().err
+    assert "declared.png: decomposing 30000x20000 px at 512x341 px needs about" in err
+    assert "over the memory limit of 2.00 GB" in err
+
+
+def test_settings_that_fail_every_image_stop_the_run_before_any(
+    photo, tmp_path, monkeypatch, capsys
+):
+    argv = ["decompose", str(photo / "cat.png"), "-o", str(tmp_path / "out"), *FAST]
+    monkeypatch.setenv("TORCHIID_MEMORY_LIMIT", "abc")
+    assert main(argv) == 2
+    assert "TORCHIID_MEMORY_LIMIT must be a number of GB >= 0" in capsys.readouterr().err
+    monkeypatch.delenv("TORCHIID_MEMORY_LIMIT")
+    assert main([*argv, "--max-side", "30"]) == 2
+    err = capsys.readouterr().err
+    assert "max_side must be 0 (no resizing) or at least patch_size (60), got 30" in err
+    assert not (tmp_path / "out").exists()
 
 
 def test_quiet_prints_only_errors(photo, tmp_path, capsys):

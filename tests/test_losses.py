@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
+from torchiid.core.exceptions import ShapeError
 from torchiid.losses import (
     PriorLoss,
     image_priors,
@@ -86,3 +88,40 @@ def test_the_methods_decomposition_beats_r_equals_i():
     flat = loss.components(img, img, torch.ones_like(out.shading), pr)
     for name in ("A", "B"):
         assert float(parts[name]) < 0.5 * float(flat[name]), name
+
+
+def test_the_priors_take_what_decompose_takes_and_refuse_the_rest_clearly():
+    m = mondrian(16, 16)
+    unbatched = image_priors(m.image[0], PARAMS)
+    assert unbatched.shape == (1, 16, 16) and unbatched.dtype == torch.float32
+    for half in (torch.float16, torch.bfloat16):
+        assert image_priors(m.image.to(half), PARAMS).dtype == torch.float32
+    with pytest.raises(ShapeError, match=r"image"):
+        image_priors(m.image.permute(0, 2, 3, 1), PARAMS)  # channels last: (1, H, W, 3)
+    with pytest.raises(ShapeError, match="expected image to be a torch.Tensor"):
+        image_priors(m.image[0].permute(1, 2, 0).numpy(), PARAMS)
+
+
+def test_the_loss_of_mixed_precision_layers_is_taken_in_the_priors_dtype():
+    m = mondrian(16, 16, batch=2)
+    loss = PriorLoss(PARAMS)
+    pr = loss.priors(m.image)
+    want = loss(m.image, m.reflectance, m.shading, pr)
+    for half in (torch.float16, torch.bfloat16):
+        r = m.reflectance.to(half).requires_grad_()
+        got = loss(m.image.to(half), r, m.shading.to(half), pr)
+        assert got.dtype == torch.float32 and torch.isfinite(got)
+        torch.testing.assert_close(got, want, rtol=0.05, atol=0)
+        got.backward()
+        assert r.grad is not None and r.grad.dtype == half and torch.isfinite(r.grad).all()
+
+
+def test_layers_of_another_size_than_the_priors_are_a_shape_error():
+    m = mondrian(16, 16)
+    loss = PriorLoss(PARAMS)
+    pr = loss.priors(m.image)
+    crop = (m.image[..., :12, :12], m.reflectance[..., :12, :12], m.shading[..., :12, :12])
+    with pytest.raises(ShapeError, match=r"the priors are of 1 image\(s\) of 16x16 px"):
+        loss(*crop, pr)
+    with pytest.raises(ShapeError, match="shading has shape"):
+        loss(m.image, m.reflectance, m.shading[..., :12, :12], pr)

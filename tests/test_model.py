@@ -411,3 +411,16 @@ def test_the_solve_record_keeps_the_order_and_roundings_of_info_json():
     assert record["times"] == {"shading 1": 0.1235, "total": 1.0}
     assert record["converged"] is False and record["solves"] == [str(s) for s in solves]
     assert "times" not in solve_record(result, FAST, 2.0)
+
+
+def test_the_module_shows_and_saves_its_parameters(tmp_path):
+    params = Parameters.preset("converged").replace(iterations=3)
+    module = IntrinsicDecomposer(params)
+    assert repr(module) == "IntrinsicDecomposer(preset='converged', iterations=3)"
+    assert repr(IntrinsicDecomposer()) == "IntrinsicDecomposer(preset='default')"
+    torch.save(module.state_dict(), tmp_path / "module.pt")
+    loaded = IntrinsicDecomposer()
+    loaded.load_state_dict(torch.load(tmp_path / "module.pt", weights_only=True))
+    assert loaded.params == params
+    with pytest.raises(ParameterError, match="not saved by an IntrinsicDecomposer"):
+        loaded.load_state_dict({"_extra_state": {"weights": 1}})

@@ -170,7 +170,7 @@ def rerun_cost(args: argparse.Namespace, work: Path) -> list[tuple[str, int, flo
     decided = plan(unique_keys(list_inputs([src])), Manifest(out / MANIFEST_NAME), phash, out=out)
     touched = time.perf_counter() - t0
     assert len(decided.done_before) == args.entries and decided.hashed == args.entries
-    rows.append((f"skip pass after `touch` of every input ({len(raw) // 1024} KB each: all hashed)",
+    rows.append((f"skip pass after `touch` of every input ({len(raw) // 1000} kB each: all hashed)",
                  args.entries, touched))  # fmt: skip
     return rows
 

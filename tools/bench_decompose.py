@@ -84,9 +84,9 @@ def _worker(args: argparse.Namespace) -> None:
         t["cpu"] = time.process_time() - c0
         runs.append(t)
     res = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
-    res["rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    res["rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e6  # KiB -> MB
     if dev.type == "cuda":
-        res["cuda_mb"] = torch.cuda.max_memory_allocated(dev) / 2**20
+        res["cuda_mb"] = torch.cuda.max_memory_allocated(dev) / 1e6
     res["threads"] = torch.get_num_threads()
     res["shape"] = list(x.shape[-2:])
     print(json.dumps(res))

@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
                 image, mode=mode, backend=backend, scale=scale, onnx_extractor=onnx
             )
             times.append(time.perf_counter() - start)
-        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e6  # KiB -> MB
         scale_txt = f"{scale:.1f}" if mode == "shared" else "-"
         print(
             f"{mode:<7} {backend:<7} {scale_txt:>5} {out.features.shape[1]:>7} "

@@ -28,7 +28,7 @@ from torchiid.features.onnx_backend import OnnxFeatureExtractor
 
 def rss_mb():
     with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 h, w = map(int, sys.argv[1].split("x"))
 x = torch.rand(1, 3, h, w, generator=torch.Generator().manual_seed(0))

@@ -57,7 +57,7 @@ def run_once(photo: Path, out: Path, extra: list[str]) -> tuple[float, float, fl
     if os.waitstatus_to_exitcode(status) != 0:
         raise SystemExit(f"torchiid failed on {photo}:\n{err}")
     info = json.loads((out / f"{photo.stem}-info.json").read_text())
-    return wall, usage.ru_maxrss / 1024**2, float(info["seconds"])
+    return wall, usage.ru_maxrss * 1024 / 1e9, float(info["seconds"])
 
 
 def main() -> None:

@@ -49,7 +49,7 @@ def main() -> None:
     segments = felzenszwalb_segments(s.image)
     t_seg = time.perf_counter() - t0
 
-    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e6
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats()
     problem = ReflectanceProblem(rho, s.image, gpca=gpca, segments=segments)
@@ -97,10 +97,10 @@ def main() -> None:
             f"{float(r.solver.objective[0, 0]):10.1f} {float(r.solver.objective[-1, 0]):10.1f} "
             f"{rm0:9.4f} {rm1:8.4f}"
         )
-    rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e6
     if dev.type == "cuda":
-        print(f"peak CUDA memory: {torch.cuda.max_memory_allocated() / 2**20:.0f} MiB")
-    print(f"peak RSS: {rss1:.0f} MiB (growth during the runs: {rss1 - rss0:.0f} MiB)")
+        print(f"peak CUDA memory: {torch.cuda.max_memory_allocated() / 1e6:.0f} MB")
+    print(f"peak RSS: {rss1:.0f} MB (growth during the runs: {rss1 - rss0:.0f} MB)")
 
 
 if __name__ == "__main__":

@@ -76,7 +76,7 @@ def main() -> None:
         d = res.diagnostics
         s, gt = res.log_shading.flatten(), syn.shading.log().flatten()
         corr = float(torch.corrcoef(torch.stack([s, gt]))[0, 1])
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e6  # KiB -> MB
         t = d.times
         h, w = syn.image.shape[-2:]
         print(

@@ -149,12 +149,12 @@ def measure(
     runs = [_measure_once(paths, settings, state, phash) for _ in range(repeats)]
     res = {
         "steps": {k: statistics.median(r[k] for r in runs) for k in runs[0]},
-        "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e6,  # KiB -> MB
         "batch": len(paths),
         "threads": torch.get_num_threads(),
     }
     if state.device.type == "cuda":
-        res["cuda_mb"] = torch.cuda.max_memory_allocated(state.device) / 2**20
+        res["cuda_mb"] = torch.cuda.max_memory_allocated(state.device) / 1e6
     return res
 
 
@@ -194,7 +194,7 @@ def _child(cmd: list[str], env: dict[str, str]) -> tuple[float, float, str]:
         sys.stderr.write(text[-4000:])  # the child's traceback, above the one-line summary
         tail = text.strip().splitlines()[-1:] or ["(no output)"]
         raise SystemExit(f"bench_steps.py: {' '.join(cmd[:4])}... failed: {tail[0]}")
-    return wall, usage.ru_maxrss / 1024, text
+    return wall, usage.ru_maxrss * 1024 / 1e6, text
 
 
 def run_worker(args: argparse.Namespace, photos: Path, device: str, batch: int) -> dict:
@@ -239,9 +239,9 @@ def _cells(res: dict, k: int) -> dict[str, str]:
         named[f"shading solve {i}"] = steps.get(f"shading {i}", float("nan"))
         named[f"reflectance solve {i}"] = steps.get(f"reflectance {i}", float("nan"))
     cells = {row: f"{named.get(row, float('nan')) / n:.3f}" for row in _rows(k)}
-    cells["peak memory, worker RSS (GB)"] = f"{res['rss_mb'] / 1024:.2f}"
+    cells["peak memory, worker RSS (GB)"] = f"{res['rss_mb'] / 1000:.2f}"
     if "cuda_mb" in res:
-        cells["peak CUDA memory allocated (GB)"] = f"{res['cuda_mb'] / 1024:.2f}"
+        cells["peak CUDA memory allocated (GB)"] = f"{res['cuda_mb'] / 1000:.2f}"
     return cells
 
 
@@ -252,7 +252,7 @@ def table(results: dict, k: int) -> str:
     for (device, batch), cli in ((key[1:], v) for key, v in results.items() if key[0] == "cli"):
         cell = cells.setdefault((device, batch), {})
         cell[CLI_WALL] = f"{cli['seconds']:.2f}"
-        cell[CLI_RSS] = f"{cli['rss_mb'] / 1024:.2f}"
+        cell[CLI_RSS] = f"{cli['rss_mb'] / 1000:.2f}"
     columns = list(dict.fromkeys([*columns, *cells]))
     present = {row for key in columns for row in cells[key]}
     rows = [r for r in [*_rows(k), WORKER_RSS, CUDA_PEAK, CLI_WALL, CLI_RSS] if r in present]

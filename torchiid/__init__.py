@@ -30,6 +30,7 @@ if TYPE_CHECKING:  # what static tools (mypy, mkdocstrings) see; at run time: __
     from torchiid.core.exceptions import (
         ConvergenceWarning,
         ImageError,
+        InputWarning,
         MemoryLimitError,
         ModelError,
         ParameterError,
@@ -62,6 +63,7 @@ __all__ = [
     "ConvergenceWarning",
     "Decomposition",
     "ImageError",
+    "InputWarning",
     "IntrinsicDecomposer",
     "IterationLayers",
     "MemoryLimitError",
@@ -112,6 +114,7 @@ _SOURCES = {
         [
             "ConvergenceWarning",
             "ImageError",
+            "InputWarning",
             "MemoryLimitError",
             "ModelError",
             "ParameterError",

@@ -28,7 +28,8 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Sequence
+import warnings
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import NoReturn
 
@@ -141,7 +142,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     # before torch loads (its OpenMP pool size); workers inherit both
     environment = run_environment(threads, getattr(args, "memory_limit", None))
     torch_threads = None
+    from torchiid.core.exceptions import InputWarning
+
+    notes = warnings.catch_warnings()  # the run's warning settings, given back after it
+    notes.__enter__()
+    # what the loader changed in an input is a note, even where warnings are made errors
+    warnings.filterwarnings("always", category=InputWarning)
+    warnings.showwarning = _notes(warnings.showwarning, args.quiet)
     try:
+        from torchiid.core.memory import memory_limit
+
+        memory_limit()  # a bad TORCHIID_MEMORY_LIMIT stops the run here, not once per image
         if threads is not None:
             import torch
 
@@ -159,6 +170,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             torch.set_num_threads(torch_threads)
         _restore(environment)
+        notes.__exit__(None, None, None)
         if main_thread:
             signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 
@@ -184,6 +196,20 @@ def console_main() -> NoReturn:
     if children is not None and children.active_children():
         sys.exit(status)
     os._exit(status)
+
+
+def _notes(shown: Callable[..., None], quiet: bool) -> Callable[..., None]:
+    """``warnings.showwarning`` for a run: an input the loader changed is a one-line note."""
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
+        from torchiid.core.exceptions import InputWarning
+
+        if not issubclass(category, InputWarning):
+            shown(message, category, filename, lineno, file, line)
+        elif not quiet:
+            print(f"torchiid: note: {message}", file=sys.stderr)
+
+    return show
 
 
 def _module(name: str):

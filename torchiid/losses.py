@@ -17,7 +17,8 @@ are derived from the image alone (and its Stage 0 features) and computed **witho
 :class:`~torchiid.params.Parameters` at one alternation, and the reconstruction weighted like
 Eq. 12's data term on ``[0, 1]`` values, ``γ_a · value_scale`` (255). Every energy is divided by
 the number of pixels ``H·W`` and averaged over the batch, so the scale does not depend on the
-crop size. Everything follows the device and dtype of the image.
+crop size. Everything follows the device and dtype of the image (float32 for a float16 or
+bfloat16 one: layers from a mixed-precision network are evaluated in the priors' dtype).
 """
 
 from __future__ import annotations
@@ -28,9 +29,11 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from torchiid.core.check import as_mask
+from torchiid.core.check import as_mask, check_same_batch
+from torchiid.core.exceptions import ShapeError
 from torchiid.features.semantic import SemanticFeatures, semantic_features
 from torchiid.params import Parameters
+from torchiid.pipeline.inputs import check_inputs
 from torchiid.priors.api import ReflectancePrior, ShadingPrior, reflectance_priors, shading_priors
 from torchiid.stages.reflectance import build_reflectance_terms
 from torchiid.stages.shading import build_shading_system
@@ -55,11 +58,14 @@ class ImagePriors:
         reflectance: name (``"A"``, ``"B"``, ``"C"``; ``"A+B"`` when built with
             ``merge=True``) -> :class:`~torchiid.priors.api.ReflectancePrior`.
         shape: ``(B, H, W)``.
+        dtype: the dtype the priors hold (the image's; float32 for a float16 or bfloat16
+            image). :class:`PriorLoss` evaluates the layers in it.
     """
 
     shading: dict[str, ShadingPrior]
     reflectance: dict[str, ReflectancePrior]
     shape: tuple[int, int, int]
+    dtype: torch.dtype = torch.float32
 
 
 @torch.no_grad()
@@ -81,7 +87,9 @@ def image_priors(
     solver's, unweighted and unmerged (``A`` and ``B`` separate unless ``merge``).
 
     Args:
-        image: ``(B, 3, H, W)`` linear RGB at the resolution the priors should act on.
+        image: ``(B, 3, H, W)`` or ``(3, H, W)`` linear RGB at the resolution the priors
+            should act on, checked as :func:`~torchiid.decompose` checks it; a float16 or
+            bfloat16 image gives float32 priors.
         params: weights, switches and constants (default :class:`~torchiid.params.Parameters`).
         features: Stage 0 features of ``image`` (computed when ``None``).
         mask: optional mask (nonzero inside); pairs and rows touching the outside are dropped.
@@ -98,7 +106,9 @@ def image_priors(
         :class:`ImagePriors`.
     """
     params = params if params is not None else Parameters()
-    msk = None if mask is None else as_mask(mask, image)
+    image, msk = check_inputs(image, mask, params)
+    if image.dtype in (torch.float16, torch.bfloat16):
+        image = image.float()  # the priors' kernels work in float32 or float64
     if features is None:
         features = semantic_features(image, params)
     shading, reflectance = params.alternation(alternation)
@@ -111,7 +121,8 @@ def image_priors(
         merge=merge,
     )
     b, _, h, w = image.shape
-    return ImagePriors(shading_priors(sh.terms), reflectance_priors(rt.terms), (b, h, w))
+    shading_terms, reflectance_terms = shading_priors(sh.terms), reflectance_priors(rt.terms)
+    return ImagePriors(shading_terms, reflectance_terms, (b, h, w), image.dtype)
 
 
 def shading_losses(
@@ -225,7 +236,28 @@ class PriorLoss(nn.Module):
         priors: ImagePriors | None = None,
         mask: torch.Tensor | None = None,
     ) -> dict[str, torch.Tensor]:
-        """Every weighted, per-pixel term, name -> ``(B,)`` (``"reconstruction"`` and priors)."""
+        """Every weighted, per-pixel term, name -> ``(B,)`` (``"reconstruction"`` and priors).
+
+        Layers in another dtype than the priors (float16 or bfloat16 under mixed precision)
+        are evaluated in the priors' dtype; the gradient flows back through the conversion.
+
+        Raises:
+            ShapeError: the image, the layers and the priors differ in batch or size.
+        """
+        check_same_batch(image, reflectance, shading, names=["image", "reflectance", "shading"])
+        if priors is None:
+            priors = (
+                self.priors(image, mask=mask) if self.use_shading or self.use_reflectance else None
+            )
+        if priors is not None:
+            if (image.shape[0], *image.shape[-2:]) != priors.shape:
+                b, h, w = priors.shape
+                raise ShapeError(
+                    f"the priors are of {b} image(s) of {w}x{h} px but image has shape "
+                    f"{tuple(image.shape)}"
+                )
+            dtype = priors.dtype
+            image, reflectance, shading = (x.to(dtype) for x in (image, reflectance, shading))
         if self.log_space:
             log_r, log_s = reflectance, shading
             reflectance, shading = log_r.exp(), log_s.exp()
@@ -237,10 +269,8 @@ class PriorLoss(nn.Module):
             * reconstruction_loss(image, reflectance, shading, mask)
             / n
         }
-        if not (self.use_shading or self.use_reflectance):
-            return out
         if priors is None:
-            priors = self.priors(image, mask=mask)
+            return out
         if self.use_shading:
             for name, e in shading_losses(log_s, priors.shading).items():
                 out[name] = self.shading_scale * priors.shading[name].weight * e / n

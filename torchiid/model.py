@@ -26,9 +26,10 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
+from torchiid._version import __version__
 from torchiid.core.exceptions import ParameterError
 from torchiid.features.semantic import SemanticFeatures, semantic_features
-from torchiid.params import Parameters
+from torchiid.params import PRESETS, Parameters
 from torchiid.pipeline.alternation import Alternation, warn_unconverged
 from torchiid.pipeline.inputs import WorkingInputs, working_inputs
 from torchiid.pipeline.layers import (
@@ -251,6 +252,10 @@ def _decomposition(
 class IntrinsicDecomposer(nn.Module):
     """``nn.Module`` twin of :func:`decompose` for use inside larger models.
 
+    It has no tensors of its own; its ``state_dict()`` holds its parameters (the
+    ``_extra_state`` entry), so a larger model saved and loaded keeps the decomposer's settings,
+    and its ``repr`` names the nearest preset and the values that differ from it.
+
     Args:
         params: the parameters (default: the ``default`` preset).
         return_iterations: keep every alternation's layers.
@@ -275,3 +280,35 @@ class IntrinsicDecomposer(nn.Module):
     def forward(self, image: torch.Tensor, mask: torch.Tensor | None = None) -> Decomposition:
         """Decompose ``image``; see :func:`decompose`."""
         return decompose(image, self.params, mask=mask, return_iterations=self.return_iterations)
+
+    def extra_repr(self) -> str:
+        """The nearest preset and the values that differ from it."""
+        mine = self.params.to_dict()
+        nearest, changes = "default", {}
+        for name in PRESETS:
+            theirs = Parameters.preset(name).to_dict()
+            diff = {k: v for k, v in mine.items() if theirs[k] != v}
+            if name == "default" or len(diff) < len(changes):
+                nearest, changes = name, diff
+        parts = [f"preset={nearest!r}", *(f"{k}={v!r}" for k, v in changes.items())]
+        if self.return_iterations:
+            parts.append("return_iterations=True")
+        return ", ".join(parts)
+
+    def get_extra_state(self) -> dict:
+        """The parameters, so that ``state_dict()`` and ``load_state_dict()`` carry them.
+
+        The module has no tensors of its own: its parameters are the method's settings.
+        """
+        return {
+            "params": self.params.to_dict(),
+            "return_iterations": self.return_iterations,
+            "torchiid_version": __version__,
+        }
+
+    def set_extra_state(self, state: dict) -> None:
+        """Restore what :meth:`get_extra_state` saved (a bad value is a ParameterError)."""
+        if not isinstance(state, dict) or "params" not in state:
+            raise ParameterError("this state was not saved by an IntrinsicDecomposer")
+        self.params = _checked_params(Parameters.from_dict(dict(state["params"])))
+        self.return_iterations = bool(state.get("return_iterations", False))

@@ -43,6 +43,21 @@ def write_photo(path: Path, rgb: np.ndarray) -> Path:
     return path
 
 
+def header_only_png(path: Path, w: int, h: int) -> Path:
+    """A PNG of a few bytes that declares ``w x h`` RGB pixels and holds none of them."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return (
+            struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+        )
+
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IEND", b""))
+    return path
+
+
 def coffee(w: int, h: int) -> np.ndarray:
     """skimage's coffee photo (600x400) resized to ``w x h``."""
     return cv2.resize(data.coffee(), (w, h), interpolation=cv2.INTER_AREA)
@@ -68,6 +83,8 @@ def photos(tmp_path_factory):
         "truncated": d / "truncated.jpg",
         "tiny": write_photo(d / "tiny.png", np.full((1, 1, 3), 200, np.uint8)),
         "text": d / "notes.txt",
+        "declared": header_only_png(d / "declared.png", 30000, 20000),
+        "panorama": write_photo(d / "panorama.png", coffee(1200, 80)),
     }
 
 

@@ -88,6 +88,91 @@ def test_a_photo_over_the_memory_limit_says_the_limit_and_how_to_raise_it(tmp_pa
     folder.remove()
 
 
+def test_a_large_declared_size_is_refused_before_the_pixels_are_decoded(
+    tmp_path, photos, monkeypatch
+):
+    import torchiid.app.session as session_module
+
+    def never(*args, **kwargs):
+        raise AssertionError("decoded")
+
+    monkeypatch.setattr(session_module, "load_image", never)
+    folder = ServerFolder(tmp_path)
+    calls = Callbacks(AppConfig(memory_limit=1_000_000_000), folder)
+    with pytest.raises(gr.Error) as err:
+        calls.decompose(str(photos["declared"]), "default", 1, 512)
+    message = err.value.message
+    assert message.startswith("declared.png: decomposing 30000x20000 px at 512x341 px needs")
+    assert "over the memory limit of 1.00 GB" in message
+    folder.remove()
+
+
+def test_a_memory_message_speaks_of_the_page_s_controls():
+    from torchiid.app.session import _app_terms
+
+    said = _app_terms(
+        "decomposing 9000x6000 px at full resolution needs about 4.1 GB of memory and 2.0 GB "
+        "is available; with --max-side 512, the default (max_side in Python), it needs about "
+        "1.9 GB; set TORCHIID_MEMORY_CHECK=0 to try anyway"
+    )
+    assert "with a working resolution of 512 px, it needs about 1.9 GB" in said
+    assert "TORCHIID_MEMORY_CHECK" not in said and "--max-side" not in said
+
+
+def test_a_working_resolution_too_small_for_the_patches_says_what_to_set(calls, photos):
+    with pytest.raises(gr.Error) as err:
+        calls.decompose(str(photos["panorama"]), "default", 1, 512)
+    assert err.value.message == (
+        "panorama.png: at a working resolution of 512 px the photo is 512x34 px, under the 60 "
+        "px the method needs on each side; set the working resolution to 900 px or more, or to "
+        "0 (the photo's own size)"
+    )
+
+
+def test_a_new_albedo_that_cannot_be_read_is_removed_with_a_warning(calls, photos):
+    with pytest.warns(UserWarning, match=r"new albedo: notes\.txt: is not an image"):
+        assert calls.check_albedo(str(photos["text"])) is None
+    assert calls.check_albedo(str(photos["texture"])) == str(photos["texture"])
+    assert calls.check_albedo(None) is None
+
+
+def test_an_albedo_error_names_the_control(calls, chelsea_session, photos):
+    values = _values(texture=str(photos["text"]))
+    selection = Selection((0,))
+    with pytest.raises(gr.Error) as err:
+        calls.preview(chelsea_session, selection, COMPARE[0], *values)
+    assert err.value.message.startswith("new albedo: notes.txt: is not an image")
+
+
+def test_object_edits_without_a_selection_say_once_how_to_select(calls, photos, monkeypatch):
+    told = []
+    monkeypatch.setattr(callbacks.gr, "Info", lambda message, **kwargs: told.append(message))
+    session = calls.decompose(str(photos["small"]), "default", 1, 512)[0]
+    calls.preview(session, None, COMPARE[0], *_values(soften=0.5))
+    assert told == []  # a light edit needs no selection
+    for hue in (30, 60):
+        calls.preview(session, None, COMPARE[0], *_values(hue=hue))
+    assert len(told) == 1 and "click one in the photo" in told[0]
+
+
+def test_the_same_file_with_the_same_settings_is_not_decomposed_again(calls, photos, monkeypatch):
+    first = calls.decompose(str(photos["small"]), "default", 1, 512)
+    runs = []
+    real = callbacks.open_photo
+    monkeypatch.setattr(callbacks, "open_photo", lambda *a, **k: runs.append(a) or real(*a, **k))
+    again = calls.decompose(str(photos["small"]), "default", 1, 512, first[0])
+    assert runs == [] and again[0] is first[0]
+    assert all((a == b).all() for a, b in zip(again[1:4], first[1:4], strict=True))
+    other = calls.decompose(str(photos["small"]), "default", 2, 512, first[0])
+    assert len(runs) == 1 and other[0] is not first[0] and "2 alternations" in other[4]
+
+
+def test_clearing_the_selection_puts_the_size_slider_back(calls, chelsea_session):
+    selection, image, size, status = calls.clear_selection(chelsea_session)
+    assert selection is None and image.shape == (150, 200, 3)
+    assert size["value"] == 0 and "Click an object" in status
+
+
 def test_no_photo_and_bad_settings_are_messages_too(calls, photos):
     with pytest.raises(gr.Error, match="choose a photo file first"):
         calls.decompose(None, "default", 1, 512)
@@ -141,7 +226,7 @@ def test_a_click_selects_the_object_under_it_and_the_size_slider_grows_it(calls,
     mask = s.objects.mask(small.proposal, s.preview.size)[0, 0].numpy()
     changed = np.abs(before.astype(int) - after.astype(int)).max(-1) > 2
     assert changed[mask].mean() > 0.5 and not changed[~mask].any()
-    cleared, photo, status = calls.clear_selection(s)
+    cleared, photo, _, status = calls.clear_selection(s)
     assert cleared is None and (photo == callbacks.srgb8(s.preview.image)).all()
 
 

@@ -88,3 +88,22 @@ def test_solver_note_tells_a_breakdown_from_a_cap():
     assert detail is None and "raise cg_max_iter" in note
     note, _ = solver_note("a.png", [capped, broke], True, "a-info.json")
     assert "no further progress" in note and "--verbose" in note and "2 of 2" in note
+
+
+def test_a_manifest_that_cannot_be_written_stops_the_run_before_any_image(
+    library, tmp_path, capsys
+):
+    out = tmp_path / "out"
+    (out / "manifest.jsonl").mkdir(parents=True)  # there, and no file can be added to
+    argv = ["decompose", str(library / "cover.png"), "-o", str(out), *FAST]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "manifest.jsonl: cannot be written" in err and "records every image there" in err
+    assert sorted(p.name for p in out.iterdir()) == ["manifest.jsonl"]  # nothing written
+
+
+def test_a_run_whose_images_all_fail_gives_no_rate(library, tmp_path, capsys):
+    argv = ["decompose", str(library / "2020" / "broken.png"), "-o", str(tmp_path / "o"), *FAST]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "0 done, 0 skipped, 1 failed" in err and "images/minute" not in err

@@ -154,3 +154,24 @@ def test_a_worker_that_cannot_be_set_up_stops_the_run(library, tmp_path):
     with pytest.raises(SetupError, match=r"a worker process cannot set up the run: .*gone.png"):
         run_collection(items, settings, workers=1)
     assert not out.exists()  # nothing recorded: no image failed
+
+
+def test_a_script_without_a_main_guard_is_told_why_its_workers_die(library, tmp_path):
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "from pathlib import Path\n"
+        "from torchiid.collection import RunSettings, run_collection\n"
+        "from torchiid.io.inputs import list_inputs\n"
+        "from torchiid.params import Parameters\n"
+        f"items = list_inputs([{str(library / 'cover.png')!r}])\n"
+        f"settings = RunSettings(out=Path({str(tmp_path / 'out')!r}), params=Parameters(),"
+        " method='retinex')\n"
+        "run_collection(items, settings, workers=1)\n"
+    )
+    run = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=300, cwd=tmp_path
+    )
+    assert run.returncode == 1
+    last = run.stderr.strip().splitlines()[-1]
+    assert "the worker processes die before they take an image" in last
+    assert 'if __name__ == "__main__":' in last

@@ -225,3 +225,17 @@ def test_edit_records_its_version_and_decomposes_like_decompose(files):
     layers = json.loads((out / "m-info.json").read_text())
     assert layers["torchiid_version"] == torchiid.__version__ and "solves" in layers
     assert "m-sigma.exr" in layers["files"]
+
+
+def test_negative_values_set_to_0_are_a_note_in_edit_too(tmp_path, capsys):
+    linear = mondrian(64, 80, seed=3).image[0].permute(1, 2, 0).numpy().copy()
+    linear[2, 3, 0] = -0.002  # a renderer's ringing
+    np.save(tmp_path / "render.npy", linear)
+    argv = ["edit", "merge", str(tmp_path / "render.npy"), "-o", str(tmp_path / "o")]
+    assert main([*argv, "--iterations", "1"]) == 0
+    err = capsys.readouterr().err
+    assert (
+        "torchiid: note: " in err
+        and "render.npy: 1 negative value (down to -0.002) set to 0" in err
+    )
+    assert "InputWarning" not in err and "warnings.warn" not in err

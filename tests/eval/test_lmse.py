@@ -107,3 +107,32 @@ def test_lmse_errors():
         local_mse(g, g, mask=torch.ones(1, 1, 29, 30))
     with pytest.raises(ShapeError):
         mit_lmse(torch.rand(1, 2, 30, 30), g, g, g)
+
+
+def test_mit_lmse_and_local_mse_take_one_unbatched_image():
+    # a dataset sample's layers are (C, H, W): they score without adding a batch axis
+    gen = torch.Generator().manual_seed(4)
+    r = torch.rand(3, 40, 44, generator=gen) + 0.1
+    s = torch.rand(1, 40, 44, generator=gen) + 0.1
+    est_r = r * (torch.rand(3, 40, 44, generator=gen) + 0.5)
+    est_s = torch.rand(1, 40, 44, generator=gen) + 0.1
+    mask = torch.rand(1, 40, 44, generator=gen) > 0.2
+    batched = mit_lmse(r[None], s[None], est_r[None], est_s[None], mask[None])
+    for m in (mask, mask[0]):  # (1, H, W) and (H, W) masks
+        one = mit_lmse(r, s, est_r, est_s, m)
+        assert one.shape == () and one.item() == pytest.approx(batched.item(), rel=1e-12)
+    one = local_mse(s, est_s, mask)
+    assert one.shape == () and one.item() == pytest.approx(
+        local_mse(s[None], est_s[None], mask[None]).item(), rel=1e-12
+    )
+    assert mit_lmse(r, s, 0.5 * r, 2 * s).item() == pytest.approx(0.0, abs=1e-12)
+
+
+def test_mit_lmse_refuses_batched_and_unbatched_layers_mixed():
+    r, s = torch.rand(3, 30, 30) + 0.1, torch.rand(1, 30, 30) + 0.1
+    with pytest.raises(ShapeError, match=r"all batched \(B, C, H, W\) or all one image"):
+        mit_lmse(r, s, r[None], s[None])
+    with pytest.raises(ShapeError, match=r"est has shape \(1, 1, 30, 30\) but gt"):
+        local_mse(s, s[None])
+    with pytest.raises(ShapeError, match=r"\(B, C, H, W\) or \(C, H, W\), got \(30, 30\)"):
+        mit_lmse(r[0], s[0], r[0], s[0])

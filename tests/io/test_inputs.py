@@ -22,6 +22,17 @@ def test_a_directory_without_images_is_an_error(tmp_path):
     with pytest.raises(TorchiidError, match="directory holds no image files") as err:
         collect_inputs([tmp_path])
     assert str(tmp_path) in str(err.value) and ".png" in str(err.value)
+    assert "subfolders" not in str(err.value)
+
+
+def test_a_directory_with_images_only_in_subfolders_points_to_recursive(tmp_path):
+    import cv2
+    import numpy as np
+
+    (tmp_path / "2024").mkdir()
+    cv2.imwrite(str(tmp_path / "2024" / "a.png"), np.zeros((64, 64, 3), np.uint8))
+    with pytest.raises(TorchiidError, match="its subfolders do: -r \\(recursive=True in Python\\)"):
+        collect_inputs([tmp_path])
 
 
 def test_suffixes():

@@ -110,6 +110,7 @@ def test_the_flat_form_names_every_leaf_once():
         ({"lambda_l": 1e308}, "lambda_l must be a finite number within float32's range"),
         ({"theta": float("inf")}, "theta must be a finite number within float32's range"),
         ({"luminance_weight": float("inf")}, "luminance_weight must be a finite number"),
+        ({"max_side": 30}, "max_side must be 0 \\(no resizing\\) or at least patch_size \\(60\\)"),
     ],
 )
 def test_invalid_values_are_named(changes, message):
@@ -187,3 +188,12 @@ def test_parameters_pickle_and_copy():
     p = Parameters.preset("converged").variant("v4")
     assert pickle.loads(pickle.dumps(p)) == p
     assert copy.deepcopy(p) == p and copy.copy(p) == p
+
+
+def test_numpy_numbers_are_read_as_python_numbers():
+    np = pytest.importorskip("numpy")
+    p = Parameters(iterations=np.int64(3), lambda_l=np.float32(2.5), max_side=np.int32(0))
+    assert p == Parameters(iterations=3, lambda_l=2.5, max_side=0)
+    assert type(p.iterations) is int and type(p.shading.lambda_l) is float
+    with pytest.raises(ParameterError, match="iterations must be an integer"):
+        Parameters(iterations=np.float64(3.0))

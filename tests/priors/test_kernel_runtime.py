@@ -37,6 +37,18 @@ def test_environment_switch_turns_the_kernels_off(monkeypatch):
     assert kernel_runtime.usable(torch.rand(1, 1, 4, 4))
 
 
+def test_an_unknown_switch_value_is_said_and_keeps_the_kernels(monkeypatch, caplog):
+    monkeypatch.setenv("TORCHIID_KERNELS", "fast")
+    kernel_runtime.compiled.cache_clear()
+    try:
+        with caplog.at_level("WARNING"):
+            assert kernel_runtime.usable(torch.rand(1, 1, 4, 4))
+    finally:
+        monkeypatch.delenv("TORCHIID_KERNELS")
+        kernel_runtime.compiled.cache_clear()
+    assert "TORCHIID_KERNELS=fast is neither torch nor numba" in caplog.text
+
+
 def test_a_forked_child_gets_its_own_band_pool(monkeypatch):
     import os
 

@@ -22,7 +22,7 @@ import gradio as gr
 import numpy as np
 
 from torchiid.app.config import AppConfig
-from torchiid.app.edits import EditSettings, render
+from torchiid.app.edits import EditSettings, load_texture, render
 from torchiid.app.files import ServerFolder, write_edited, write_layers_zip
 from torchiid.app.objects import highlight
 from torchiid.app.session import Session, open_photo, srgb8, view_shading
@@ -116,6 +116,11 @@ def _markdown(info: dict[str, Any]) -> str:
         f"alternation{'s' if info['iterations'] != 1 else ''}, in {info['seconds']:.1f} s; "
         f"shading white {info['shading_white']:.3g}, "
         f"albedo excess {info['albedo_excess']:.2%}",
+        *(
+            ["", f"{n} negative values of the file were set to 0."]
+            if (n := info.get("negatives_set_to_zero"))
+            else []
+        ),
         "",
         "| step | seconds |",
         "| --- | --- |",
@@ -156,6 +161,11 @@ class Callbacks:
         params = Parameters.preset(preset or "default").replace(
             iterations=int(iterations), max_side=int(max_side)
         )
+        source = (photo, params)
+        if previous is not None and previous.cache.get("source") == source:
+            # the same file with the same settings (Decompose pressed while its upload was
+            # being decomposed): the result would be the same, so it is not computed again
+            return (previous, *self._views(previous))
         forget(previous)
 
         def report(fraction: float, message: str) -> None:
@@ -169,10 +179,15 @@ class Callbacks:
             memory_limit=self.config.memory_limit,
             progress=report,
         )
+        session.cache["source"] = source
+        return (session, *self._views(session))
+
+    @staticmethod
+    def _views(session: Session) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+        """The photo, reflectance and shading previews and the run info of a session."""
         p = session.preview
         white = float(session.result.shading_white[0])
         return (
-            session,
             srgb8(p.image),
             srgb8(p.reflectance),
             srgb8(view_shading(p.shading, white)),
@@ -206,6 +221,13 @@ class Callbacks:
             return gr.skip()
         settings = settings_from(values)
         proposal = None if selection is None else selection.proposal
+        if proposal is None and settings.object_edits and not session.cache.get("told_select"):
+            session.cache["told_select"] = True  # once per photo: the controls say the rest
+            gr.Info(
+                "Hue, chroma, flattening and a new albedo change the selected object: "
+                "click one in the photo",
+                duration=8,
+            )
         edited = render(session, settings, proposal)
         white = float(session.result.shading_white[0])
         shown = {
@@ -249,10 +271,26 @@ class Callbacks:
         image, status = self._selected(session, selection)
         return selection, image, status
 
-    def clear_selection(self, session: Session | None) -> tuple[None, Any, str]:
-        """Forget the selection: the photo as it is."""
+    def clear_selection(self, session: Session | None) -> tuple[None, Any, Any, str]:
+        """Forget the selection: the photo as it is, the size slider back at the smallest."""
         image = None if session is None else srgb8(session.preview.image)
-        return None, image, "Click an object in the photo to select it."
+        size = gr.update(value=0, maximum=1)
+        return None, image, size, "Click an object in the photo to select it."
+
+    @_user_errors
+    def check_albedo(self, path: str | None) -> str | None:
+        """A new albedo file as it is uploaded: kept if it reads, else removed with a warning.
+
+        A file that cannot be read would otherwise stay in its box and fail every later edit.
+        """
+        if not path:
+            return path
+        try:
+            load_texture(path)
+        except TorchiidError as exc:
+            gr.Warning(f"{_message(exc, {path: Path(path).name})}; it is not used", duration=10)
+            return None
+        return path
 
     def _selected(self, session: Session, selection: Selection) -> tuple[np.ndarray, str]:
         h, w = session.preview.size

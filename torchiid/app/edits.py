@@ -27,6 +27,7 @@ import torch
 
 from torchiid import edit
 from torchiid.app.session import Layers, Session
+from torchiid.core.exceptions import ImageError
 from torchiid.io import load_image
 
 __all__ = ["EditSettings", "Edited", "apply_edits", "render"]
@@ -78,11 +79,23 @@ class Edited:
     shading: torch.Tensor
 
 
+def load_texture(path: str) -> torch.Tensor:
+    """A new albedo image as ``(3, h, w)`` linear; its errors name the control it came from.
+
+    Raises:
+        ImageError: the file cannot be read, as ``"new albedo: <file>: <problem>"``.
+    """
+    try:
+        return load_image(path, min_side=1, alpha="ignore").image
+    except ImageError as exc:
+        raise ImageError(f"new albedo: {exc}") from None
+
+
 def _texture(session: Session, path: str) -> torch.Tensor:
     """The texture file as ``(3, h, w)`` linear, loaded once per session."""
     key = ("texture", path)
     if key not in session.cache:
-        session.cache[key] = load_image(path, min_side=1, alpha="ignore").image
+        session.cache[key] = load_texture(path)
     return session.cache[key]
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,8 +21,9 @@ import numpy as np
 import torch
 
 from torchiid.app.objects import Objects
-from torchiid.core.exceptions import MemoryLimitError
+from torchiid.core.exceptions import ImageError, InputWarning, MemoryLimitError
 from torchiid.io import load_image
+from torchiid.io.decode import declared_size
 from torchiid.io.layers import srgb8_from_linear
 from torchiid.model import Decomposition, check_memory, decompose
 from torchiid.params import Parameters
@@ -159,10 +161,42 @@ def _info(name: str, loaded: Any, result: Decomposition, params: Parameters, sec
         "working_size": [int(ww), int(wh)],
         "exif_orientation": loaded.orientation,
         "bit_depth": loaded.bit_depth,
+        "negatives_set_to_zero": loaded.negatives,
         "iterations": params.iterations,
         "shading_white": float(result.shading_white[0]),
         **solve_record(result, params, seconds, result.times),
     }
+
+
+def _app_terms(message: str) -> str:
+    """A memory message in the page's terms: its controls, not the command line's options."""
+    message = message.replace(
+        f"--max-side {Parameters().output.max_side}, the default (max_side in Python)",
+        f"a working resolution of {Parameters().output.max_side} px",
+    )
+    cut = message.find("; set TORCHIID_MEMORY_CHECK=0")
+    if cut >= 0:  # the server's environment, which the page cannot set
+        message = message[:cut] + "; a smaller photo fits"
+    return message
+
+
+def _check_working_size(name: str, h: int, w: int, params: Parameters) -> None:
+    """Refuse, in the page's terms, a working resolution too small for the method's patches."""
+    side = params.output.max_side
+    patch = params.features.patch_size
+    wh, ww = working_size(h, w, side)
+    if min(wh, ww) >= patch:
+        return
+    needed = -(-patch * max(h, w) // min(h, w))  # the longer side that gives patch px
+    fix = (
+        f"set the working resolution to {needed} px or more, or to 0 (the photo's own size)"
+        if needed <= max(h, w)
+        else "it is too narrow for the method at any working resolution"
+    )
+    raise ImageError(
+        f"{name}: at a working resolution of {side} px the photo is {ww}x{wh} px, under the "
+        f"{patch} px the method needs on each side; {fix}"
+    )
 
 
 def open_photo(
@@ -198,15 +232,25 @@ def open_photo(
     say = progress or (lambda fraction, message: None)
     name = name or Path(path).name
     say(0.0, "reading the photo")
-    loaded = load_image(path)
-    h, w = loaded.image.shape[-2:]
     device = torch.device(device)
     flags = {"return_stage1": True, "return_iterations": True}
-    if device.type == "cpu":
-        try:
-            check_memory(h, w, params, limit=memory_limit, **flags)
-        except MemoryLimitError as exc:
-            raise MemoryLimitError(f"{name}: {exc}") from None
+
+    def check(h: int, w: int) -> None:
+        if device.type == "cpu":
+            try:
+                check_memory(h, w, params, limit=memory_limit, **flags)
+            except MemoryLimitError as exc:
+                raise MemoryLimitError(f"{name}: {_app_terms(str(exc))}") from None
+
+    size = declared_size(path)  # before decoding: a small file may declare a huge picture
+    if size is not None:
+        check(*size)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)  # the info below says it
+        loaded = load_image(path)
+    h, w = loaded.image.shape[-2:]
+    check(h, w)
+    _check_working_size(name, h, w, params)
     total = params.iterations + 2  # Stage 0, the alternations, the full-resolution layers
     say(0.0, "Stage 0: semantic features")
 

@@ -182,9 +182,15 @@ def build_app(config: AppConfig, folder: ServerFolder) -> gr.Blocks:
             ).success(calls.preview, preview_in, [compare_view], **_PRIVATE).success(
                 calls.layers_zip, [session], [layers_file], **api, **_HEAVY
             )
-        for control in values:
-            listen = control.change if isinstance(control, gr.File) else control.input
-            listen(calls.preview, preview_in, [compare_view], **_EDIT)
+        for name, control in controls.items():
+            if name == "texture":  # a file that cannot be read is removed, not kept failing
+                control.change(calls.check_albedo, [control], [control], **_PRIVATE).success(
+                    calls.preview, preview_in, [compare_view], **_EDIT
+                )
+            elif isinstance(control, gr.ColorPicker):  # a typed #rrggbb fires no input event
+                control.change(calls.preview, preview_in, [compare_view], **_EDIT)
+            else:
+                control.input(calls.preview, preview_in, [compare_view], **_EDIT)
         compare.input(calls.preview, preview_in, [compare_view], **_EDIT)
         photo.select(calls.select, [session], [selection, photo, size, status], **_PRIVATE).success(
             calls.preview, preview_in, [compare_view], **_EDIT
@@ -196,9 +202,9 @@ def build_app(config: AppConfig, folder: ServerFolder) -> gr.Blocks:
             trigger_mode="always_last",
             **_PRIVATE,
         ).success(calls.preview, preview_in, [compare_view], **_EDIT)
-        clear.click(calls.clear_selection, [session], [selection, photo, status], **_PRIVATE).then(
-            calls.preview, preview_in, [compare_view], **_EDIT
-        )
+        clear.click(
+            calls.clear_selection, [session], [selection, photo, size, status], **_PRIVATE
+        ).then(calls.preview, preview_in, [compare_view], **_EDIT)
         defaults = EditSettings()
         reset.click(
             lambda: [getattr(defaults, name) for name in EDIT_FIELDS], None, values, **_PRIVATE

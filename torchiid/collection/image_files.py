@@ -95,6 +95,7 @@ def write_outputs(
         "method": settings.method,
         "working_size": list(reversed(result.working_size)) if result.working_size else None,
         "exif_orientation": getattr(loaded, "orientation", 1),
+        "negatives_set_to_zero": getattr(loaded, "negatives", 0),
         **solve_record(result, params, seconds),
         **extra,
         "files": {},

@@ -47,6 +47,7 @@ from torchiid.collection.worker import SetupError, worker_state
 from torchiid.core.exceptions import (
     ConvergenceWarning,
     ImageError,
+    InputWarning,
     MemoryLimitError,
     ModelError,
     TorchiidError,
@@ -55,9 +56,10 @@ from torchiid.core.exceptions import (
     one_line,
 )
 from torchiid.io import load_image, load_mask
+from torchiid.io.decode import declared_size
 from torchiid.io.inputs import KeyParts
 from torchiid.io.layers import OutputError, OutputSet
-from torchiid.model import decompose
+from torchiid.model import check_memory, decompose
 
 __all__ = [
     "ImageJob",
@@ -358,8 +360,20 @@ def _found_complete(
 
 
 def _load_input(job: ImageJob, settings: RunSettings, shared_mask: Any, result: ImageResult):
-    """The loaded image and the mask it is decomposed under (its own, ``--mask``, the file's)."""
-    loaded = load_image(job.path, linear=settings.linear)
+    """The loaded image and the mask it is decomposed under (its own, ``--mask``, the file's).
+
+    What the loader changed (a float file's stray negatives set to 0) becomes the image's note.
+    The memory check runs on the size the file declares before its pixels are decoded: a
+    small file can declare a picture that takes gigabytes once decoded.
+    """
+    size = declared_size(job.path) if settings.method == "semantic" else None
+    if size is not None:
+        flags = {"return_stage1": True, "return_iterations": settings.save_iterations}
+        check_memory(*size, settings.params, **flags)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)  # said once, in the image's note
+        loaded = load_image(job.path, linear=settings.linear)
+    result.note = loaded.negatives_note()
     result.sha256 = file_sha256(job.path)
     image, mask = loaded.image, loaded.mask
     masks = [(settings.mask, shared_mask)]
@@ -392,9 +406,11 @@ def _finish(result, placed, settings, t0, decomposition, stem) -> None:
     result.status = "done"
     result.files = [Path(os.path.relpath(p, settings.out)).as_posix() for p in placed]
     result.seconds = time.perf_counter() - t0
-    result.note, result.detail = solver_note(
+    note, result.detail = solver_note(
         result.path, list(decomposition.solves), settings.params.converge, f"{stem}-info.json"
     )
+    # the loader's note first, then the solvers' (one line each)
+    result.note = "\n".join(n for n in (result.note, note) if n) or None
 
 
 def _run_method(decompose_fn, batch, mbatch, settings, params, stem, show_progress):

@@ -336,7 +336,10 @@ class WorkerPool:
                 if self._early_deaths >= 3 * self.n:
                     raise TorchiidError(
                         "the worker processes die before they take an image "
-                        f"({_death(w.process.exitcode)}); run without --workers to see why"
+                        f"({_death(w.process.exitcode)}); run without --workers (workers=None "
+                        "in Python) to see why. A Python script that starts workers must "
+                        "do it under 'if __name__ == \"__main__\":', since each worker "
+                        "imports the script again"
                     )
             return None
         self.deaths += 1

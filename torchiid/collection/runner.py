@@ -20,6 +20,7 @@ import os
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Protocol
 
 from torchiid.collection.job import ImageJob, ImageResult, InterruptedAfterCommit, process_image
@@ -188,6 +189,7 @@ def run_collection(
             summary.failures.append(result)
 
     try:
+        _check_manifest_writable(writer.path)
         t0 = time.perf_counter()
         the_plan = plan(
             items,
@@ -275,6 +277,23 @@ def run_collection(
             results.close()
         writer.close()
         lock.release()
+
+
+def _check_manifest_writable(path: Path) -> None:
+    """Refuse a run whose manifest is there but cannot be added to, before any image.
+
+    Every finished image is recorded there; without it the files would be written and the run
+    would then fail on the record.
+    """
+    if not path.exists():
+        return  # made on the first record, in the folder the lock showed to be writable
+    try:
+        with open(path, "a", encoding="utf-8"):
+            pass
+    except OSError as exc:
+        raise SetupError(
+            f"{path}: cannot be written ({exc.strerror or exc}); the run records every image there"
+        ) from None
 
 
 def _here(

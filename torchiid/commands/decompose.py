@@ -188,8 +188,8 @@ class _Printer:
         if not result.ok:
             self.say(f"torchiid: error: {result.message}")
             return
-        if result.note:
-            self.note(f"torchiid: note: {result.note}")
+        for note in (result.note or "").splitlines():
+            self.note(f"torchiid: note: {note}")
         if result.detail and self.verbose:
             self.say(f"torchiid: {result.detail}")
         how = "complete files found" if result.recovered else f"{result.seconds:.1f} s"
@@ -327,7 +327,9 @@ def _report(s: RunSummary, args: argparse.Namespace) -> int:
     parts.append(f"{s.failed} failed")
     rate = ""
     if s.processed and s.seconds > 0:
-        rate = f" in {_duration(s.seconds)} ({60 * s.processed / s.seconds:.1f} images/minute)"
+        # the rate of the decompositions: failures end early and would inflate it
+        per_minute = f" ({60 * s.done / s.seconds:.1f} images/minute)" if s.done else ""
+        rate = f" in {_duration(s.seconds)}{per_minute}"
     retried = f"; {s.retried} retried after their worker died" if s.retried else ""
     manifest = args.output / MANIFEST_NAME
     where = f"; manifest {manifest}" if manifest.is_file() else ""

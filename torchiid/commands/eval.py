@@ -13,7 +13,7 @@ import math
 import sys
 from pathlib import Path
 
-from torchiid.commands.common import add_parameter_options, finite_float, params_from_args
+from torchiid.commands.common import add_parameter_options, finite_float, params_from_args, say
 
 __all__ = ["DATASETS", "DESCRIPTION", "EPILOG", "METHODS", "add_arguments", "run"]
 
@@ -35,12 +35,19 @@ dataset id from DIR, the exact files first: <id>-reflectance.npy and <id>-shadin
 <id>-shading.exr (16-bit linear and float OpenEXR, written by `torchiid decompose`), else
 <id>-reflectance.png and <id>-shading.png (8-bit sRGB, decoded to linear). The id is the
 IIW/SAW photo id, the MIT object name, or the dense image name; the layers must have the
-image's size.
+image's size. MIT-Berkeley's PNGs are 16-bit linear: decompose them with --linear and
+each object's mask, from flat <object>.png copies (docs/guide/evaluation.md).
 
 resuming: results.csv gets a row as each image finishes. With --resume (the default) the
 ids already in it are skipped and counted in the summary; the run's settings must match
-those in summary.json. --no-resume refuses to touch an existing results.csv; --overwrite
-discards it and starts over. Failed images get no row, so a resumed run retries them.
+those in summary.json, and its --ids / --limit must select every id in results.csv (a run
+may go on to more images, not to others). --no-resume refuses to touch an existing
+results.csv; --overwrite discards it and starts over. Failed images get no row, so a
+resumed run retries them.
+
+options that do not apply (--delta outside iiw, --input outside mit, the video options
+outside video, the parameter options with a baseline or --results) are named in a note
+and ignored.
 
 batching: images of equal size are decomposed together in batches of --batch-size (at
 most 4 x batch-size images wait in memory for a partner of their size).
@@ -52,7 +59,7 @@ video (torchiid eval video FRAMES RESULTS [--flow DIR]): the warping error of La
 (2018) of the reflectance in RESULTS (frame-XXXXXX-* files of decompose-video, or
 <frame stem>-* of decompose) for every pair of consecutive frames: flow estimated on the
 frames (OpenCV DIS), non-occluded pixels by a forward-backward check, and with --flow the
-given flows; with -o, OUT/video-summary.json."""
+given flows (their columns only then); with -o, OUT/video-summary.json."""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -72,7 +79,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--method",
-        default="semantic",
         choices=METHODS,
         help="semantic: the paper's method (default); retinex: colour Retinex; "
         "r=i: reflectance = image, shading = 1; s=i: shading = gray image, "
@@ -82,7 +88,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--batch-size",
         type=int,
-        default=1,
         help="images of equal size decomposed together (default 1)",
     )
     p.add_argument("--limit", type=int, help="evaluate only the first N images of the set")
@@ -91,7 +96,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--input",
-        default="diffuse",
         choices=["diffuse", "original"],
         help="MIT input image (default diffuse, the standard protocol)",
     )
@@ -104,7 +108,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--resume",
         action=argparse.BooleanOptionalAction,
-        default=True,
         help="skip the ids already in OUT/results.csv (default: on)",
     )
     p.add_argument(
@@ -112,7 +115,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="discard existing results in the output folder and start over",
     )
-    p.add_argument("--delta", type=finite_float, default=0.10, help="WHDR equality margin (iiw)")
+    p.add_argument("--delta", type=finite_float, help="WHDR equality margin (iiw; default 0.10)")
     p.add_argument(
         "--flow",
         type=Path,
@@ -132,14 +135,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--eval-flow",
         choices=["dis", "farneback"],
-        default="dis",
         help="(video) optical flow estimated on the frames for the 'estimated' columns "
         "(default dis; farneback scores a DIS-based result with a flow it did not follow)",
     )
     p.add_argument(
         "--space",
         choices=["srgb", "linear"],
-        default="srgb",
         help="(video) values the warping error compares: sRGB (default, as Lai et al.) or "
         "linear, both in [0, 1]",
     )
@@ -190,6 +191,63 @@ def _report_failure(sample_id: str, exc: Exception) -> None:
     tqdm.write(f"torchiid: error: {sample_id}: {exc}", file=sys.stderr)
 
 
+#: the parameter options of ``--method semantic`` (:func:`add_parameter_options`)
+_PARAMETER_OPTIONS = ("params", "variant", "iterations", "max_side")
+#: the options of ``eval video`` alone
+_VIDEO_OPTIONS = ("flow", "occlusions", "eval_flow", "space")
+#: the options ``eval video`` does not use
+_NOT_VIDEO_OPTIONS = ("method", "batch_size", "limit", "ids", "input", "results", "delta")
+
+
+def _flag(name: str) -> str:
+    return f"--{name.replace('_', '-')}"
+
+
+def _given(args: argparse.Namespace, names: tuple[str, ...]) -> list[str]:
+    """The options of ``names`` given on the command line (their defaults are ``None``)."""
+    return [_flag(n) for n in names if getattr(args, n, None) is not None]
+
+
+def _unused_options(args: argparse.Namespace) -> list[str]:
+    """The options given that the run ignores, grouped by why: ``"--delta (iiw only)"``."""
+    groups: list[str] = []
+
+    def add(names: list[str], why: str) -> None:
+        if names:
+            groups.append(f"{', '.join(names)} ({why})")
+
+    parameters = (["--preset"] if args.preset != "default" else []) + _given(
+        args, _PARAMETER_OPTIONS
+    )
+    if args.dataset == "video":
+        no_resume = ["--no-resume"] if args.resume is False else []
+        add(
+            _given(args, _NOT_VIDEO_OPTIONS) + no_resume + parameters,
+            "eval video scores the reflectance in RESULTS_DIR",
+        )
+        return groups
+    add(_given(args, _VIDEO_OPTIONS), "eval video only")
+    if args.dataset != "iiw":
+        add(_given(args, ("delta",)), "iiw only")
+    if args.dataset != "mit":
+        add(_given(args, ("input",)), "mit only")
+    if args.results is not None:
+        add(
+            _given(args, ("method", "batch_size")) + parameters,
+            "--results scores the layers in its folder as they are",
+        )
+    elif args.method not in (None, "semantic"):
+        add(parameters, "--method semantic only")
+    return groups
+
+
+def _note_unused(args: argparse.Namespace) -> None:
+    """One note naming the options given that the run ignores (none with ``-q``)."""
+    groups = _unused_options(args)
+    if groups:
+        say(args, f"torchiid: note: not used by eval {args.dataset}: {'; '.join(groups)}")
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``torchiid eval``; returns the exit status (1 if any image failed)."""
     from torchiid.core.exceptions import ParameterError
@@ -199,29 +257,36 @@ def run(args: argparse.Namespace) -> int:
     if args.dataset == "video":
         from torchiid.commands.eval_video import run_eval_video
 
+        _note_unused(args)
         return run_eval_video(args)
     if args.results_dir is not None:
         raise ParameterError(f"eval {args.dataset} takes one folder, got {args.results_dir} too")
-    check_ranges(args.batch_size, args.limit, args.delta, flags=True)
+    _note_unused(args)
+    method = args.method or "semantic"
+    batch_size = 1 if args.batch_size is None else args.batch_size
+    delta = 0.10 if args.delta is None else args.delta
+    check_ranges(batch_size, args.limit, delta, flags=True)
     scoring = args.results is not None
-    params = params_from_args(args) if not scoring and args.method == "semantic" else None
+    params = params_from_args(args) if not scoring and method == "semantic" else None
     options = EvalOptions(
-        method=args.method,
+        method=method,
         params=params,
         output=args.output,
         results_dir=args.results,
         device=args.device,
-        batch_size=args.batch_size,
+        batch_size=batch_size,
         limit=args.limit,
         ids=args.ids,
-        input=args.input,
-        delta=args.delta,
-        resume=args.resume,
+        input=args.input or "diffuse",
+        delta=delta,
+        resume=args.resume is not False,
         overwrite=args.overwrite,
         progress=not args.no_progress,
         on_failure=_report_failure,
     )
     result = EvalRunner(args.dataset, args.dir, options).run()
+    for note in result.notes:
+        say(args, f"torchiid: note: {note}")
     data = result.summary
     print(_table(list(result.rows), result.rows, list(result.columns), data["mean"]))
     if args.dataset == "saw":

@@ -12,6 +12,7 @@ import argparse
 import json
 import os
 import sys
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from torchiid._version import __version__
@@ -23,7 +24,7 @@ from torchiid.core.exceptions import (
     one_line,
 )
 from torchiid.eval.results import load_layer
-from torchiid.eval.video import evaluate_video, frame_number, occlusion_index
+from torchiid.eval.video import VideoPair, evaluate_video, frame_number, occlusion_index
 from torchiid.io.layers import OutputError, OutputSet, check_output_folder
 from torchiid.video.frames import open_frames
 from torchiid.video.write import frame_stem
@@ -85,6 +86,8 @@ def run_eval_video(args: argparse.Namespace) -> int:
         summary_path = args.output / "video-summary.json"
         if os.path.lexists(summary_path) and not args.overwrite:
             raise OutputError(f"{summary_path} exists; pass --overwrite to replace it")
+    eval_flow = args.eval_flow or "dis"
+    space = args.space or "srgb"
     source = open_frames(args.dir)
     show = not args.no_progress
     rows, failures, prev = [], 0, None
@@ -119,8 +122,8 @@ def run_eval_video(args: argparse.Namespace) -> int:
                         [prev[1], current[1]],
                         [prev[2], current[2]],
                         flow_dir=args.flow,
-                        space=args.space,
-                        method=args.eval_flow,
+                        space=space,
+                        method=eval_flow,
                         occlusions=occlusions,
                         numbers=[prev[3], current[3]],
                     )
@@ -134,9 +137,9 @@ def run_eval_video(args: argparse.Namespace) -> int:
     if not rows:
         print("torchiid: error: no pair of consecutive frames could be scored", file=sys.stderr)
         return 1 if failures else 2
-    print(_video_table(rows, args.space, args.eval_flow))
+    print(_video_table(rows, space, eval_flow, flow=args.flow, occlusions=args.occlusions))
     if summary_path is not None:
-        _write_summary(summary_path, rows, args)
+        _write_summary(summary_path, rows, args, space=space, eval_flow=eval_flow)
         if not getattr(args, "quiet", False):
             print(f"wrote {summary_path}")
     if failures:
@@ -150,47 +153,80 @@ def _mean(values) -> float | None:
     return sum(vals) / len(vals) if vals else None
 
 
-def _video_table(rows, space: str, eval_flow: str = "dis") -> str:
-    def cell(v, digits=5) -> str:
+def _given_flows(rows: Sequence[VideoPair], flow: Path, occlusions: Path | None) -> str:
+    """What the 'given' columns used: the ``.flo`` files and where the occlusions came from."""
+    given = [r for r in rows if r.given is not None]
+    if not given:
+        return f"no .flo file in {flow} matched a frame"
+    n_maps = sum(r.occlusion_file is not None for r in given)
+    folder = occlusions if occlusions is not None else flow
+    if n_maps == len(given):
+        occluded = f"the occlusion maps in {folder}"
+    elif n_maps == 0:
+        occluded = "the forward-backward check"
+    else:
+        occluded = (
+            f"the occlusion maps in {folder} ({n_maps} pairs), else the forward-backward check"
+        )
+    return (
+        f"the .flo files in {flow} ({len(given)} of {len(rows)} pairs), occlusions from {occluded}"
+    )
+
+
+def _video_table(
+    rows: Sequence[VideoPair],
+    space: str,
+    eval_flow: str = "dis",
+    *,
+    flow: Path | None = None,
+    occlusions: Path | None = None,
+) -> str:
+    """The table of the pairs; the 'given' columns only with ``flow`` (the --flow folder)."""
+
+    def cell(v: float | None, digits: int = 5) -> str:
         return f"{'-':>12}" if v is None or v != v else f"{v:>12.{digits}f}"
 
+    columns: list[tuple[str, Callable[[VideoPair], float | None], int]] = [
+        ("WE (est.)", lambda r: r.estimated, 5),
+        ("input WE", lambda r: r.input_estimated, 5),
+        ("valid", lambda r: r.estimated_valid, 3),
+    ]
+    used = f"est.: {eval_flow} flow estimated on the frames"
+    if flow is not None:
+        columns += [
+            ("WE (given)", lambda r: r.given, 5),
+            ("input given", lambda r: r.input_given, 5),
+            ("valid given", lambda r: r.given_valid, 3),
+        ]
+        used += f"; given: {_given_flows(rows, flow, occlusions)}"
     width = max(len("mean"), *(len(f"{r.first} -> {r.second}") for r in rows))
-    head = (
-        f"{'pair':<{width}}  {'WE (est.)':>12}  {'input WE':>12}  {'valid':>12}  "
-        f"{'WE (given)':>12}  {'input given':>12}  {'valid given':>12}"
-    )
+    head = f"{'pair':<{width}}  " + "  ".join(f"{name:>12}" for name, _, _ in columns)
     lines = [
-        f"warping error of the reflectance ({space} values in [0, 1]; est.: {eval_flow} flow "
-        "estimated on the frames, given: the --flow files)",
+        f"warping error of the reflectance ({space} values in [0, 1]; {used})",
         head,
         "-" * len(head),
     ]
     for r in rows:
-        lines.append(
-            f"{r.first + ' -> ' + r.second:<{width}}  {cell(r.estimated)}  "
-            f"{cell(r.input_estimated)}  {cell(r.estimated_valid, 3)}  {cell(r.given)}  "
-            f"{cell(r.input_given)}  {cell(r.given_valid, 3)}"
-        )
+        pair = f"{r.first} -> {r.second}"
+        cells = "  ".join(cell(get(r), digits) for _, get, digits in columns)
+        lines.append(f"{pair:<{width}}  {cells}")
     lines.append("-" * len(head))
-    lines.append(
-        f"{'mean':<{width}}  {cell(_mean(r.estimated for r in rows))}  "
-        f"{cell(_mean(r.input_estimated for r in rows))}  "
-        f"{cell(_mean(r.estimated_valid for r in rows), 3)}  "
-        f"{cell(_mean(r.given for r in rows))}  {cell(_mean(r.input_given for r in rows))}  "
-        f"{cell(_mean(r.given_valid for r in rows), 3)}"
-    )
+    means = "  ".join(cell(_mean(get(r) for r in rows), digits) for _, get, digits in columns)
+    lines.append(f"{'mean':<{width}}  {means}")
     return "\n".join(lines)
 
 
-def _write_summary(path: Path, rows, args: argparse.Namespace) -> None:
+def _write_summary(
+    path: Path, rows: Sequence[VideoPair], args: argparse.Namespace, *, space: str, eval_flow: str
+) -> None:
     data = {
         "torchiid_version": __version__,
         "frames": str(args.dir),
         "results": str(args.results_dir),
         "flow": None if args.flow is None else str(args.flow),
         "occlusions": None if args.occlusions is None else str(args.occlusions),
-        "eval_flow": args.eval_flow,
-        "space": args.space,
+        "eval_flow": eval_flow,
+        "space": space,
         "mean": {
             "estimated": _mean(r.estimated for r in rows),
             "input_estimated": _mean(r.input_estimated for r in rows),

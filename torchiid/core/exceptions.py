@@ -16,6 +16,7 @@ __all__ = [
     "ModelError",
     "MemoryLimitError",
     "ConvergenceWarning",
+    "InputWarning",
     "one_line",
     "describe_error",
 ]
@@ -51,6 +52,14 @@ class MemoryLimitError(TorchiidError):
 
 class ConvergenceWarning(UserWarning):
     """An iterative solver stopped before reaching its tolerance."""
+
+
+class InputWarning(UserWarning):
+    """An input was usable only after a change that the user should know of.
+
+    For example, a float file's few negative values set to 0
+    (:func:`~torchiid.io.validate.clip_negatives`).
+    """
 
 
 def one_line(text: str) -> str:

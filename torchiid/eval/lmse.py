@@ -31,6 +31,17 @@ from torchiid.core.exceptions import ParameterError, ShapeError
 __all__ = ["local_mse", "mit_lmse"]
 
 
+def _shape(x: object) -> object:
+    return tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+
+
+def _check_4d(x: torch.Tensor, name: str) -> None:
+    """:func:`check_shape` ``(B, C, H, W)``, naming the one-image form too."""
+    if isinstance(x, torch.Tensor) and x.dim() != 4:
+        raise ShapeError(f"expected {name} of shape (B, C, H, W) or (C, H, W), got {_shape(x)}")
+    check_shape(x, ("B", "C", "H", "W"), name)
+
+
 def local_mse(
     gt: torch.Tensor,
     est: torch.Tensor,
@@ -45,21 +56,29 @@ def local_mse(
     masked estimate is all zero). Computed in float64 with ``unfold``.
 
     Args:
-        gt: ground truth, linear, ``(B, C, H, W)``.
+        gt: ground truth, linear, ``(B, C, H, W)``, or one image ``(C, H, W)``.
         est: estimate, same shape (any global scale).
-        mask: ``(B, 1, H, W)``, ``(1, 1, H, W)``, ``(B, H, W)`` or ``(H, W)``, bool or
-            float weights; ``None`` for all pixels.
+        mask: ``(B, 1, H, W)``, ``(1, 1, H, W)``, ``(B, H, W)`` or ``(H, W)`` (one image:
+            ``(1, H, W)`` or ``(H, W)``); nonzero is inside; ``None`` for all pixels.
         window: window side (20 in Grosse et al.).
         shift: window stride (default ``window // 2``).
 
     Returns:
-        ``(B,)`` LMSE per image, in the dtype of ``gt``; ``nan`` where the covered
-        ground-truth energy is zero.
+        ``(B,)`` LMSE per image (a 0-dim tensor for one ``(C, H, W)`` image), in the dtype
+        of ``gt``; ``nan`` where the covered ground-truth energy is zero.
+
+    Raises:
+        ShapeError: ``gt`` is neither ``(B, C, H, W)`` nor ``(C, H, W)``, ``est`` has
+            another shape, or the image is smaller than the window.
 
     Shape:
-        - gt, est: ``(B, C, H, W)``; mask: ``(B, 1, H, W)``.
+        - gt, est: ``(B, C, H, W)`` or ``(C, H, W)``; mask: ``(B, 1, H, W)``.
     """
-    check_shape(gt, ("B", "C", "H", "W"), "gt")
+    if isinstance(gt, torch.Tensor) and gt.dim() == 3:  # one image: a batch of one
+        if not isinstance(est, torch.Tensor) or est.shape != gt.shape:
+            raise ShapeError(f"est has shape {_shape(est)} but gt has shape {tuple(gt.shape)}")
+        return local_mse(gt[None], est[None], mask, window, shift)[0]
+    _check_4d(gt, "gt")
     if est.shape != gt.shape:
         raise ShapeError(f"est has shape {tuple(est.shape)} but gt has shape {tuple(gt.shape)}")
     shift = window // 2 if shift is None else shift
@@ -107,29 +126,58 @@ def mit_lmse(
     illumination) is reduced the same way, a 1-channel one is used as is. All inputs linear.
     Arguments are reflectance first, as everywhere in the package.
 
+    The four layers are either all batched ``(B, C, H, W)`` or all one image ``(C, H, W)``,
+    the shape of a :class:`~torchiid.eval.datasets.MITDataset` sample's layers, so a sample
+    scores directly: ``mit_lmse(s.reflectance, s.shading, est_r, est_s, s.mask)``.
+
     Args:
-        true_reflectance: ``(B, 3, H, W)`` or ``(B, 1, H, W)``.
-        true_shading: ``(B, 1, H, W)`` or ``(B, 3, H, W)``.
-        est_reflectance: ``(B, 3, H, W)`` or ``(B, 1, H, W)``.
-        est_shading: ``(B, 1, H, W)`` or ``(B, 3, H, W)``.
-        mask: object mask, as in :func:`local_mse`.
+        true_reflectance: ``(B, 3, H, W)`` or ``(B, 1, H, W)``; one image: ``(3, H, W)`` or
+            ``(1, H, W)``.
+        true_shading: ``(B, 1, H, W)`` or ``(B, 3, H, W)``; one image: ``(1, H, W)`` or
+            ``(3, H, W)``.
+        est_reflectance: as ``true_reflectance``.
+        est_shading: as ``true_shading``.
+        mask: object mask, as in :func:`local_mse` (one image: ``(1, H, W)`` or ``(H, W)``).
         window: window side.
 
     Returns:
-        ``(B,)`` scores (lower is better).
+        ``(B,)`` scores (lower is better); a 0-dim tensor for one ``(C, H, W)`` image.
+
+    Raises:
+        ShapeError: the layers mix batched and one-image shapes, a layer has another
+            channel count than 1 or 3, or the sizes differ.
 
     Example:
         >>> r, s = torch.rand(1, 3, 40, 40) + 0.1, torch.rand(1, 1, 40, 40) + 0.1
         >>> float(mit_lmse(r, s, 0.5 * r, 2 * s))  # scale-invariant
         0.0
+        >>> float(mit_lmse(r[0], s[0], 0.5 * r[0], 2 * s[0]))  # one (C, H, W) image
+        0.0
     """
-    for name, x in (
-        ("true_reflectance", true_reflectance),
-        ("true_shading", true_shading),
-        ("est_reflectance", est_reflectance),
-        ("est_shading", est_shading),
-    ):
-        check_shape(x, ("B", "C", "H", "W"), name)
+    layers = {
+        "true_reflectance": true_reflectance,
+        "true_shading": true_shading,
+        "est_reflectance": est_reflectance,
+        "est_shading": est_shading,
+    }
+    dims = {x.dim() if isinstance(x, torch.Tensor) else None for x in layers.values()}
+    if dims == {3}:  # one image each: a batch of one
+        return mit_lmse(
+            true_reflectance[None],
+            true_shading[None],
+            est_reflectance[None],
+            est_shading[None],
+            mask,
+            window,
+        )[0]
+    if len(dims) > 1 and dims <= {3, 4}:
+        shapes = ", ".join(f"{name} {tuple(x.shape)}" for name, x in layers.items())
+        raise ShapeError(
+            f"expected the four layers all batched (B, C, H, W) or all one image (C, H, W), "
+            f"got {shapes}"
+        )
+    for name, x in layers.items():
+        _check_4d(x, name)
         if x.shape[1] not in (1, 3):
             raise ShapeError(f"expected {name} with 1 or 3 channels, got {tuple(x.shape)}")
     s = local_mse(_gray(true_shading), _gray(est_shading), mask, window)

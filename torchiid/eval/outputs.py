@@ -13,6 +13,7 @@ import math
 import os
 import shutil
 import statistics
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -45,6 +46,17 @@ class EvalResult:
             ``n_scored``, ``mean``, ``median_seconds``, ``failures``; for ``saw`` also
             ``pooled_ap`` and ``pooled_ap_images``).
         output: the output folder.
+        notes: remarks on the run that are no failure, one line each: the layers of a
+            results folder that look decomposed from the wrongly decoded input (see
+            :func:`~torchiid.eval.results.input_decoding`); ``torchiid eval`` prints them as
+            ``torchiid: note: ...``.
+
+    Example:
+        The rows and the summary of a run::
+
+            result = run_evaluation("mit", "mit-berkeley", method="r=i", output="eval-mit")
+            rows, summary = result.rows, result.summary
+            print(rows["apple"]["lmse"], summary["mean"]["lmse"])
     """
 
     ids: tuple[str, ...]
@@ -53,6 +65,7 @@ class EvalResult:
     failures: dict[str, str]
     summary: dict[str, Any]
     output: Path
+    notes: tuple[str, ...] = ()
 
     @property
     def csv_path(self) -> Path:
@@ -136,13 +149,37 @@ def _check_settings(out: Path, settings: dict[str, Any]) -> None:
         )
 
 
+def _check_ids(out: Path, done: dict[str, dict[str, float]], ids: Sequence[str]) -> None:
+    """Refuse to resume into a ``results.csv`` that holds rows of ids outside ``ids``.
+
+    A resumed run may select more images than the run before it (``limit=2``, then all), not
+    other or fewer: its summary describes its own selection, and ``results.csv`` would hold
+    rows that the summary does not count.
+    """
+    selected = set(ids)
+    extra = [i for i in done if i not in selected]
+    if extra:
+        shown = ", ".join(extra[:5]) + (f" and {len(extra) - 5} more" if len(extra) > 5 else "")
+        raise TorchiidError(
+            f"{out} holds a run with other settings (ids: its results.csv scores {shown}, "
+            "which this run does not select); use another -o or --overwrite"
+        )
+
+
 def prepare_output(
-    out: Path, settings: dict[str, Any], columns: list[str], *, resume: bool, overwrite: bool
+    out: Path,
+    settings: dict[str, Any],
+    columns: list[str],
+    *,
+    resume: bool,
+    overwrite: bool,
+    ids: Sequence[str] | None = None,
 ) -> dict[str, dict[str, float]]:
     """Create / check the output folder; return the rows already done (when resuming).
 
     ``results.csv`` is rewritten with those rows alone, so a torn last line is gone before
-    the run appends to it.
+    the run appends to it. With ``ids`` (the run's selection), rows of other ids are refused
+    (see :func:`_check_ids`): ``results.csv`` and ``summary.json`` describe the same images.
     """
     if out.exists() and not out.is_dir():
         raise TorchiidError(f"{out}: output exists and is not a directory")
@@ -160,6 +197,8 @@ def prepare_output(
     if csv_path.exists():
         _check_settings(out, settings)
         done = _read_rows(csv_path, columns)
+        if ids is not None:
+            _check_ids(out, done, ids)
     tmp = out / ".results.csv.tmp"
     with tmp.open("w", newline="") as fh:
         writer = csv.writer(fh)

@@ -14,9 +14,19 @@ Outputs in the output folder (:mod:`torchiid.eval.outputs`):
 - ``saw-scores/<id>.npz`` (``saw`` only): each image's pixel scores, pooled into that AP.
 
 Resuming: with ``resume=True`` the ids already in ``results.csv`` are skipped and counted in
-the summary; the run's settings must match those in ``summary.json``. ``resume=False``
-refuses to touch an existing ``results.csv``; ``overwrite=True`` discards it and starts
-over. Failed images get no row, so a resumed run retries them.
+the summary; the run's settings must match those in ``summary.json``, and its selection
+(``ids``, ``limit``) must include every id of ``results.csv`` (a run may go on to more
+images, not to others or fewer), so ``results.csv`` and ``summary.json`` always describe the
+same images. ``resume=False`` refuses to touch an existing ``results.csv``;
+``overwrite=True`` discards it and starts over. Failed images get no row, so a resumed run
+retries them.
+
+Results folders: the layers of each id are read with
+:func:`~torchiid.eval.results.load_layer`; a folder that holds no layer file of any id is
+refused before any work, and a layer of another size than the image fails that image,
+naming the file. Layers that multiply to the input decoded the wrong way (a 16-bit linear
+MIT image decomposed as sRGB, :func:`~torchiid.eval.results.input_decoding`) are scored
+as they are and named in :attr:`EvalResult.notes`.
 
 Batching: images of equal size are decomposed together in batches of ``batch_size`` (at
 most ``4 × batch_size`` images wait in memory for a partner of their size); when a batch
@@ -43,7 +53,7 @@ from tqdm import tqdm
 
 from torchiid._version import __version__
 from torchiid.core.device import resolve_device
-from torchiid.core.exceptions import TorchiidError
+from torchiid.core.exceptions import ShapeError, TorchiidError
 from torchiid.eval.datasets import DATASETS, EvalDataset, Sample, check_dataset, open_dataset
 from torchiid.eval.methods import BASELINES, METHODS, method_parameters, run_method
 from torchiid.eval.options import OPTION_NAMES, EvalOptions
@@ -57,7 +67,13 @@ from torchiid.eval.outputs import (
     prepare_output,
     write_json,
 )
-from torchiid.eval.results import load_layer
+from torchiid.eval.results import (
+    LAYERS,
+    check_results_folder,
+    input_decoding,
+    layer_file,
+    read_layer,
+)
 from torchiid.eval.scoring import COUNT_COLUMNS, METRICS, pooled_saw_ap, score_sample
 
 __all__ = [
@@ -78,6 +94,27 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+
+#: what an id is in each dataset (for messages)
+_ID_NAMES = {
+    "iiw": "IIW photo id",
+    "mit": "MIT object name",
+    "saw": "SAW photo id",
+    "dense": "image name",
+}
+
+#: the note on layers that look decomposed from the wrongly decoded input
+_DECODING_NOTES = {
+    "srgb": (
+        "multiply to the input decoded as sRGB, but the dataset's input is linear: were "
+        "they decomposed without --linear (torchiid decompose --linear)?"
+    ),
+    "linear": (
+        "multiply to the input's sRGB values taken as linear, but the dataset decodes its "
+        "photos from sRGB: were they decomposed with --linear?"
+    ),
+}
 
 
 def _method_mask(dataset: str, sample: Sample) -> torch.Tensor | None:
@@ -188,20 +225,25 @@ class EvalRunner:
         is interrupted (``status`` ``"stopped"``).
 
         Returns:
-            The rows and the summary.
+            The outcome as an ``EvalResult``, whose ``rows`` are ``{id: {column: value}}``
+            and whose ``summary`` is what ``summary.json`` holds (also ``failures``, ``notes``).
 
         Raises:
             DatasetError: the dataset cannot be opened.
             TorchiidError: the output folder holds an incompatible run (other settings or
-                columns, or ``resume=False`` with an existing ``results.csv``).
+                columns, rows of ids outside this run's selection, or ``resume=False`` with
+                an existing ``results.csv``), or the results folder holds no layer of any
+                selected id.
         """
         o = self.options
         reader = open_dataset(self.dataset, self.root, o.ids, input=o.input)
         ids = list(reader.ids)[: o.limit]
+        if self.results_dir is not None:
+            check_results_folder(self.results_dir, ids, _ID_NAMES[self.dataset])
         columns = ["id", *METRICS[self.dataset], "seconds"]
         settings = self.settings()
         done = prepare_output(
-            self.output, settings, columns, resume=o.resume, overwrite=o.overwrite
+            self.output, settings, columns, resume=o.resume, overwrite=o.overwrite, ids=ids
         )
         return _Run(self, reader, ids, columns, settings, done).execute()
 
@@ -227,6 +269,7 @@ class _Run:
         self.out = runner.output
         self.rows = {i: done[i] for i in ids if i in done}
         self.failures: dict[str, str] = {}
+        self.decoding: dict[str, list[str]] = {}
         self.started = time.strftime("%Y-%m-%dT%H:%M:%S")
         self.csv_file: Any = None
         self.writer: Any = None
@@ -301,9 +344,31 @@ class _Run:
 
     def score_results(self, sample: Sample) -> None:
         t0 = time.perf_counter()
-        refl = load_layer(self.runner.results_dir, sample.id, "reflectance")
-        shading = load_layer(self.runner.results_dir, sample.id, "shading")
+        results = self.runner.results_dir
+        assert results is not None  # scoring a results folder
+        size = tuple(sample.image.shape[-2:])
+        layers = []
+        for layer in LAYERS:
+            path, linear = layer_file(results, sample.id, layer)
+            x = read_layer(path, layer, linear=linear)
+            if tuple(x.shape[-2:]) != size:
+                raise ShapeError(f"{layer} {path} is {tuple(x.shape[-2:])} but the image is {size}")
+            layers.append(x)
+        refl, shading = layers
         self.record(sample, refl, shading, time.perf_counter() - t0)
+        mask = _method_mask(self.runner.dataset, sample)
+        decoding = input_decoding(sample.image, refl, shading, mask)
+        if decoding is not None:
+            self.decoding.setdefault(decoding, []).append(sample.id)
+
+    def notes(self) -> tuple[str, ...]:
+        notes = []
+        for decoding, ids in self.decoding.items():
+            shown = ", ".join(ids[:5]) + (f" and {len(ids) - 5} more" if len(ids) > 5 else "")
+            notes.append(
+                f"the layers of {shown} in {self.runner.results_dir} {_DECODING_NOTES[decoding]}"
+            )
+        return tuple(notes)
 
     def loop(self) -> None:
         batch_size = self.options.batch_size
@@ -357,6 +422,7 @@ class _Run:
             failures=dict(self.failures),
             summary=data,
             output=self.out,
+            notes=self.notes(),
         )
 
 
@@ -370,6 +436,13 @@ def run_evaluation(dataset: str, root: str | Path, **options: Any) -> EvalResult
             ``results_dir``, ``device``, ``batch_size``, ...).
 
     Returns:
-        The rows and the summary (see :class:`EvalResult`).
+        The outcome as an ``EvalResult`` (see :class:`EvalResult`); ``result.rows`` holds the
+        rows, ``result.summary`` the summary (a result does not unpack into the two).
+
+    Example:
+        The rows and the summary of a run::
+
+            result = run_evaluation("mit", "mit-berkeley", method="r=i", output="eval-mit")
+            rows, summary = result.rows, result.summary
     """
     return EvalRunner(dataset, root, EvalOptions(**options)).run()

@@ -11,9 +11,10 @@ Integrity: a model directory (``models/`` in the repository, or the user cache) 
 source ``.pth`` weights. :func:`ensure_onnx_model` reuses a cached file only if the manifest entry
 was made from the same weights and export settings and the file still has the recorded hash;
 otherwise it exports again (never downloads), writing to a temporary file that is moved into
-place with :func:`os.replace`, so a half-written model is never used. Exports with the same
-torch version are byte-identical; across torch versions they may differ, which is why the
-check compares the file against the manifest written beside it rather than a fixed hash.
+place with :func:`os.replace`, so a half-written model is never used. Exports made with the
+same torch and ``onnx`` packages are byte-identical; with other versions the bytes may differ,
+which is why the check compares the file against the manifest written beside it rather than
+a fixed hash.
 """
 
 from __future__ import annotations

@@ -15,6 +15,7 @@ import os
 import sys
 import tempfile
 import threading
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import NamedTuple
@@ -26,7 +27,7 @@ from torchiid.io.damage import JPEG_DAMAGE, check_structure
 from torchiid.io.exr import exr_pixels
 from torchiid.io.files import check_file, damaged, fail, file_bytes, one_line, read_head, sniff
 
-__all__ = ["Decoded", "decoder_messages", "read_array", "rgb_planes"]
+__all__ = ["Decoded", "declared_size", "decoder_messages", "read_array", "rgb_planes"]
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +72,46 @@ class Decoded(NamedTuple):
     arr: np.ndarray  # (H, W[, C]) as stored in the file, before orientation
     orientation: int
     bgr: bool  # colour channels in OpenCV's BGR(A) order
+
+
+_PIL_LOCK = threading.Lock()
+
+
+def declared_size(path: str | os.PathLike) -> tuple[int, int] | None:
+    """The ``(height, width)`` a file's header declares, read without decoding its pixels.
+
+    What the memory check needs before a file is decoded: a small file may declare a picture
+    that takes gigabytes once decoded. The orientation is not applied (it does not change the
+    number of pixels). ``None`` when the header cannot tell; :func:`read_array` then reports
+    what is wrong with the file.
+    """
+    path = Path(path)
+    try:
+        if path.suffix.lower() == ".npy":
+            shape = np.load(path, mmap_mode="r", allow_pickle=False).shape
+            return (int(shape[0]), int(shape[1])) if len(shape) >= 2 else None
+        if sniff(read_head(path)) == "exr":
+            import OpenEXR
+
+            with OpenEXR.File(str(path), header_only=True) as exr:
+                (x0, y0), (x1, y1) = exr.header()["dataWindow"]
+            return int(y1 - y0 + 1), int(x1 - x0 + 1)
+        from PIL import Image
+
+        with _PIL_LOCK:  # Pillow's guard against large headers is a module setting
+            guard, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+            try:
+                # what Pillow says of a damaged header (corrupt EXIF, ...) is not the user's
+                # business here: decoding reports the damage in one line
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    with Image.open(path) as im:
+                        width, height = im.size
+            finally:
+                Image.MAX_IMAGE_PIXELS = guard
+        return int(height), int(width)
+    except Exception:  # noqa: BLE001 - any file the header does not describe: decoding tells
+        return None
 
 
 def read_array(path: Path) -> Decoded:

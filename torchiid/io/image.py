@@ -24,8 +24,10 @@ Reading (:func:`load_image`, :func:`load_mask`, :func:`~torchiid.io.exr.read_exr
   not left on the terminal beside torchiid's one-line error.
 * Bad files raise :class:`~torchiid.core.exceptions.ImageError` with a one-line message naming
   the file and the problem: missing, unreadable, empty, not an image, truncated or corrupt,
-  zero size, smaller than ``min_side`` pixels, or containing NaN / infinity
-  (:mod:`torchiid.io.validate`).
+  zero size, smaller than ``min_side`` pixels, containing NaN / infinity, or holding signed
+  values (:mod:`torchiid.io.validate`). A float file's stray negative values (a
+  reconstruction filter's ringing, noise around a subtracted black level) are set to 0 with an
+  :class:`~torchiid.core.exceptions.InputWarning` that says how many.
 
 Writing (:func:`~torchiid.io.write.save_image`, :func:`~torchiid.io.write.save_uint8`,
 :func:`~torchiid.io.write.save_codes`, :func:`~torchiid.io.write.save_encoded`) is atomic and
@@ -36,6 +38,7 @@ curves stay importable from here.
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -46,12 +49,13 @@ import torch
 from torchiid.core.check import MIN_SIDE
 from torchiid.core.colour import linear_to_srgb as linear_to_srgb
 from torchiid.core.colour import srgb_to_linear as srgb_to_linear
+from torchiid.core.exceptions import InputWarning
 from torchiid.io.bitdepth import alpha_threshold, linear_rgb
 from torchiid.io.decode import read_array, rgb_planes
 from torchiid.io.exr import read_exr as read_exr
 from torchiid.io.files import fail
 from torchiid.io.orientation import orient
-from torchiid.io.validate import check_non_negative, check_pixels
+from torchiid.io.validate import check_pixels, clip_negatives
 from torchiid.io.write import Encoding as Encoding
 from torchiid.io.write import encode_codes as encode_codes
 from torchiid.io.write import save_codes as save_codes
@@ -74,6 +78,9 @@ class LoadedImage:
         bit_depth: 8, 16 or 32 (float, including half-float OpenEXR).
         linear_file: whether the file's values are taken as linear (no sRGB decoding).
         orientation: the EXIF Orientation value (1-8) applied; 1 when the file has none.
+        negatives: how many values of a float file were negative and are set to 0 in
+            :attr:`image` (:func:`~torchiid.io.validate.clip_negatives`).
+        lowest: the most negative of them (0 when there were none).
     """
 
     image: torch.Tensor
@@ -82,6 +89,17 @@ class LoadedImage:
     bit_depth: int
     linear_file: bool
     orientation: int = 1
+    negatives: int = 0
+    lowest: float = 0.0
+
+    def negatives_note(self) -> str | None:
+        """A one-line note saying how many negative values were set to 0, or ``None``."""
+        if not self.negatives:
+            return None
+        values = "value" if self.negatives == 1 else "values"
+        return (
+            f"{self.path}: {self.negatives} negative {values} (down to {self.lowest:.4g}) set to 0"
+        )
 
 
 def load_image(
@@ -105,8 +123,13 @@ def load_image(
 
     Raises:
         ImageError: the file is missing, unreadable, empty, not an image, truncated or
-            corrupt, zero-size, too small, has an unsupported channel count, or contains
-            NaN/infinity.
+            corrupt, zero-size, too small, has an unsupported channel count, contains
+            NaN/infinity, or (a float file) holds signed values rather than intensities.
+
+    Warns:
+        InputWarning: a float file's few or shallow negative values are set to 0
+            (:func:`~torchiid.io.validate.clip_negatives`; counted in
+            :attr:`LoadedImage.negatives`).
     """
     path = Path(path)
     decoded = read_array(path)
@@ -118,16 +141,21 @@ def load_image(
         mask = _alpha_mask(path, planes.pop(), orientation, alpha)
     is_linear = linear or depth == 32
     out = linear_rgb(planes, depth, is_linear, orientation, (h, w))
-    if depth == 32:
-        check_non_negative(path, out)
-    return LoadedImage(
+    negatives, lowest = clip_negatives(path, out) if depth == 32 else (0, 0.0)
+    loaded = LoadedImage(
         image=torch.from_numpy(out),
         mask=mask,
         path=path,
         bit_depth=depth,
         linear_file=is_linear,
         orientation=orientation,
+        negatives=negatives,
+        lowest=lowest,
     )
+    note = loaded.negatives_note()
+    if note is not None:
+        warnings.warn(note, InputWarning, stacklevel=2)
+    return loaded
 
 
 def _alpha_mask(

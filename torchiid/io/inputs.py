@@ -260,9 +260,12 @@ def list_inputs(
             found = list(_walk(p, recursive, excluded))
             if not found:
                 where = " or its subfolders" if recursive else ""
+                hint = ""
+                if not recursive and any(_walk(p, True, excluded)):
+                    hint = "; its subfolders do: -r (recursive=True in Python) takes them"
                 raise TorchiidError(
                     f"{p}: directory{where} holds no image files "
-                    f"({', '.join(sorted(IMAGE_SUFFIXES))})"
+                    f"({', '.join(sorted(IMAGE_SUFFIXES))}){hint}"
                 )
             out.extend(InputItem(f, _key(f, p)) for f in found)
         elif not os.path.lexists(p) and _MAGIC & set(str(name)):

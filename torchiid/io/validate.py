@@ -3,7 +3,14 @@
 A file that decodes but cannot be an image for the method raises
 :class:`~torchiid.core.exceptions.ImageError` with a one-line message naming the file and the
 problem: zero size, smaller than ``min_side`` pixels, an unsupported channel count or pixel
-type, NaN / infinity, or negative float values.
+type, NaN / infinity, or negative float values that are more than noise around 0.
+
+Negative values in a float file. Intensities are ``>= 0``, but renderers' reconstruction
+filters ring below 0 beside bright edges, denoisers leave small negatives, and raw merges whose
+black level is subtracted scatter dark pixels around 0. Such values are few or shallow, and
+:func:`clip_negatives` sets them to 0 (the nearest intensity) and says how many it set. Many
+deep ones (a difference image, normals, log values) are a signed encoding that the
+decomposition cannot take: the file is refused.
 """
 
 from __future__ import annotations
@@ -15,7 +22,13 @@ import numpy as np
 from torchiid.io.bitdepth import bit_depth
 from torchiid.io.files import fail
 
-__all__ = ["check_non_negative", "check_pixels"]
+__all__ = ["NEGATIVE_DEPTH", "NEGATIVE_SHARE", "check_pixels", "clip_negatives"]
+
+#: Negative values are set to 0 when at most this share of the values is negative ...
+NEGATIVE_SHARE = 0.01
+#: ... or when none is deeper than this fraction of the image's bright level (its 99th
+#: percentile): noise around 0, however many pixels it touches.
+NEGATIVE_DEPTH = 0.01
 
 
 def check_pixels(
@@ -45,7 +58,29 @@ def check_pixels(
     return h, w, c, depth
 
 
-def check_non_negative(path: Path, image: np.ndarray) -> None:
-    """Raise if a float image has negative values (intensities are >= 0)."""
-    if float(image.min()) < 0:
-        raise fail(path, "has negative values; expected intensities >= 0")
+def clip_negatives(path: Path, image: np.ndarray) -> tuple[int, float]:
+    """Set a float image's stray negative values to 0, in place (see the module notes).
+
+    Returns:
+        ``(count, lowest)``: how many values were set to 0 and the most negative of them
+        (``(0, 0.0)`` when none was negative).
+
+    Raises:
+        ImageError: more than :data:`NEGATIVE_SHARE` of the values are negative and the
+            deepest is below ``−NEGATIVE_DEPTH`` times the 99th percentile.
+    """
+    lowest = float(image.min())
+    if not lowest < 0:
+        return 0, 0.0
+    count = int(np.count_nonzero(image < 0))
+    share = count / image.size
+    if share > NEGATIVE_SHARE:
+        level = float(np.quantile(image, 0.99))
+        if not -lowest <= NEGATIVE_DEPTH * level:
+            raise fail(
+                path,
+                f"has negative values ({share:.1%} of them, down to {lowest:.4g}); expected "
+                "intensities >= 0, not a signed image such as a difference, normals or logs",
+            )
+    np.maximum(image, 0, out=image)
+    return count, lowest

@@ -16,6 +16,7 @@ meaning, range and history of tuning are stated once, next to it.
 
 import dataclasses
 import math
+import numbers
 import types
 from typing import Any, ClassVar
 
@@ -105,10 +106,12 @@ def _typed(obj: object, f: dataclasses.Field, value: Any, must: str) -> Any:
         kind = next(k for k in kind.__args__ if k is not type(None))
     if kind is bool and not isinstance(value, bool):
         raise ParameterError(f"parameter {f.name} must be true or false, got {value!r}")
-    if kind is int and (isinstance(value, bool) or not isinstance(value, int)):
-        raise ParameterError(f"parameter {f.name} must be an integer, got {value!r}")
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+            raise ParameterError(f"parameter {f.name} must be an integer, got {value!r}")
+        return int(value)  # NumPy's integers too
     if kind is float:
-        if isinstance(value, bool) or not isinstance(value, int | float):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
             what = must if optional else "a number"
             raise ParameterError(f"parameter {f.name} must be {what}, got {value!r}")
         value = float(value)

@@ -113,6 +113,12 @@ class Parameters:
         check_fields(self)
         if not (self.shading.stage1 or self.reflectance.stage2):
             raise ParameterError("at least one of stage1 and stage2 must be on")
+        side, patch = self.output.max_side, self.features.patch_size
+        if 0 < side < patch:  # every image would be refused at its working resolution
+            raise ParameterError(
+                f"parameter max_side must be 0 (no resizing) or at least patch_size ({patch}), "
+                f"got {side}"
+            )
 
     def __getattr__(self, name: str) -> Any:
         # only called when the normal lookup fails: a grouped parameter's flat name is not an

@@ -114,7 +114,8 @@ class Decomposition:
             exceeded 1 and had the excess moved into the shading (at most
             ``1 - albedo_quantile`` on the sub-grid the quantile is taken on, so about that
             share of the full image).
-        working_size: ``(h, w)`` the resolution the method ran at.
+        working_size: ``(h, w)`` the resolution the method ran at, height first as in the
+            tensors' shapes (``-info.json`` gives sizes as ``[width, height]``).
         solves: one :class:`SolveReport` per stage and alternation.
         features: the Stage 0 features used (at the working resolution) when
             ``decompose(..., return_features=True)``, else ``None``: pass them back as

@@ -58,8 +58,14 @@ _pool: tuple[int, int, ThreadPoolExecutor] | None = None  # (pid, workers, pool)
 @cache
 def compiled() -> tuple[ModuleType, ModuleType] | None:
     """``(numba, the kernel module)``; ``None`` without numba or with ``TORCHIID_KERNELS=torch``."""
-    if os.environ.get("TORCHIID_KERNELS", "").lower() == "torch":
+    choice = os.environ.get("TORCHIID_KERNELS", "").strip().lower()
+    if choice == "torch":
         return None
+    if choice not in ("", "numba"):
+        logger.warning(
+            "TORCHIID_KERNELS=%s is neither torch nor numba: using the compiled (numba) kernels",
+            os.environ["TORCHIID_KERNELS"],
+        )
     try:
         import numba
     except ImportError:  # pragma: no cover - numba is a dependency; kept for slim installs
