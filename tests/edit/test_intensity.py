@@ -46,7 +46,7 @@ def test_unknown_combine_is_refused(scene):
         illumination_intensity(i, r, s, s, r, combine="median")
 
 
-def test_module_twin_matches_the_function(scene):
+def test_module_twin_matches_the_function(scene, one_thread):
     i, r, s = scene.image, scene.reflectance, scene.shading
     sigma, rho = _stages(scene)
     got = IlluminationIntensity(0.3, "max", 2.0)(i, r, s, sigma, rho)

@@ -49,7 +49,7 @@ def test_a_zero_denominator_gives_a_residue_of_one(scene):
     assert bool(torch.isfinite(m.shading).all() and torch.isfinite(m.reflectance).all())
 
 
-def test_module_twin_matches_the_function(scene):
+def test_module_twin_matches_the_function(scene, one_thread):
     i, r, s = scene.image, scene.reflectance, scene.shading
     sigma = gaussian(s, 2.0)
     got = Merge(blur=1.5)(i, r, s, sigma, r)

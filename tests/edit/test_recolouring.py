@@ -50,7 +50,7 @@ def test_target_colour_sets_the_mean_chroma(scene, box):
     assert float((mean_ab(new_r) - target).abs().max()) < 1.0
 
 
-def test_negative_chroma_is_refused_and_module_matches(scene, box):
+def test_negative_chroma_is_refused_and_module_matches(scene, box, one_thread):
     r, s = scene.reflectance, scene.shading
     with pytest.raises(ParameterError, match="chroma"):
         recolour(r, s, box, chroma=-1.0)

@@ -52,7 +52,7 @@ def test_feathered_mask_blends_its_edge(scene, box):
 
 
 @pytest.mark.parametrize("kwargs", [{"amount": 1.5}, {"pivot": 0.0}])
-def test_bad_options_are_refused_and_module_matches(scene, kwargs):
+def test_bad_options_are_refused_and_module_matches(scene, kwargs, one_thread):
     r, s = scene.reflectance, scene.shading
     with pytest.raises(ParameterError):
         soften_shadows(r, s, **kwargs)

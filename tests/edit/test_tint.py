@@ -45,7 +45,7 @@ def test_light_weights_check_their_options(scene, kwargs):
         light_weights(scene.shading, **kwargs)
 
 
-def test_module_twin_matches_the_function(scene):
+def test_module_twin_matches_the_function(scene, one_thread):
     r, s = scene.reflectance, scene.shading
     got = IlluminationColour("cyan", 0.5, 0.9, 0.3)(r, s)
     want = illumination_colour(r, s, "cyan", 0.5, percentile=0.9, radius=0.3)
