@@ -107,15 +107,19 @@ def test_a_large_declared_size_is_refused_before_the_pixels_are_decoded(
     folder.remove()
 
 
-def test_a_memory_message_speaks_of_the_page_s_controls():
+def test_a_memory_message_speaks_of_the_page_s_controls(monkeypatch):
+    import torchiid.pipeline.memory as memory
     from torchiid.app.session import _app_terms
+    from torchiid.core.exceptions import MemoryLimitError
+    from torchiid.params import Parameters
 
-    said = _app_terms(
-        "decomposing 9000x6000 px at full resolution needs about 4.1 GB of memory and 2.0 GB "
-        "is available; with --max-side 512, the default (max_side in Python), it needs about "
-        "1.9 GB; set TORCHIID_MEMORY_CHECK=0 to try anyway"
-    )
-    assert "with a working resolution of 512 px, it needs about 1.9 GB" in said
+    # the library's own message, for a machine with 2 GB left
+    monkeypatch.setattr(memory, "available_memory", lambda: 2_000_000_000)
+    with pytest.raises(MemoryLimitError) as err:
+        memory.check_memory(6000, 9000, Parameters().replace(max_side=0))
+    said = _app_terms(str(err.value))
+    assert "with a working resolution of 512 px, it needs about" in said
+    assert said.endswith("; a photo of fewer pixels needs less")
     assert "TORCHIID_MEMORY_CHECK" not in said and "--max-side" not in said
 
 
@@ -130,10 +134,14 @@ def test_a_working_resolution_too_small_for_the_patches_says_what_to_set(calls, 
 
 
 def test_a_new_albedo_that_cannot_be_read_is_removed_with_a_warning(calls, photos):
-    with pytest.warns(UserWarning, match=r"new albedo: notes\.txt: is not an image"):
-        assert calls.check_albedo(str(photos["text"])) is None
-    assert calls.check_albedo(str(photos["texture"])) == str(photos["texture"])
-    assert calls.check_albedo(None) is None
+    session = calls.decompose(str(photos["small"]), "default", 1, 512)[0]
+    for where in (None, session):
+        with pytest.warns(UserWarning, match=r"new albedo: notes\.txt: is not an image"):
+            assert calls.check_albedo(where, str(photos["text"])) is None
+        assert calls.check_albedo(where, str(photos["texture"])) == str(photos["texture"])
+        assert calls.check_albedo(where, None) is None
+    # read once, into the session the preview takes it from
+    assert ("texture", str(photos["texture"])) in session.cache
 
 
 def test_an_albedo_error_names_the_control(calls, chelsea_session, photos):

@@ -120,7 +120,7 @@ def test_options_that_do_not_apply_are_named_in_one_note(tmp_path, capsys):
         dataset = argv[0]
         assert _notes(err) == [f"torchiid: note: not used by eval {dataset}: {named}"], err
         assert len(_rows(out)) == 1  # the run went on
-    # options that apply, and defaults given again, draw no note; -q silences it
+    # options that apply draw no note; -q silences it
     argv = ["eval", "mit", str(mit), "--method", "r=i", "--input", "original", "--no-progress"]
     assert main([*argv, "-o", str(tmp_path / "plain"), "--batch-size", "2"]) == 0
     assert _notes(capsys.readouterr().err) == []
@@ -200,9 +200,9 @@ def test_layers_decomposed_from_the_srgb_decoded_input_draw_a_note(tmp_path, cap
     assert _notes(capsys.readouterr().err) == []
     assert main([*base, str(wrong), "-o", str(tmp_path / "o2")]) == 0  # scored as they are
     assert _notes(capsys.readouterr().err) == [
-        f"torchiid: note: the layers of apple, box in {wrong} multiply to the input decoded as "
-        "sRGB, but the dataset's input is linear: were they decomposed without --linear "
-        "(torchiid decompose --linear)?"
+        f"torchiid: note: the layers of apple, box in {wrong} look decomposed from the image "
+        "read as sRGB, but this dataset's images are linear: decompose them with torchiid "
+        "decompose --linear"
     ]
     assert len(_rows(tmp_path / "o2")) == 2
 
@@ -227,7 +227,7 @@ def test_decompose_linear_of_flat_copies_scores_as_the_in_memory_run(tmp_path, c
     memory, scored = _rows(tmp_path / "memory")[0], _rows(tmp_path / "r")[0]
     assert float(scored["lmse"]) == pytest.approx(float(memory["lmse"]), rel=1e-6)
     assert main([*base, "--results", str(srgb), "-o", str(tmp_path / "s")]) == 0
-    assert "decomposed without --linear" in capsys.readouterr().err
+    assert "decompose them with torchiid decompose --linear" in capsys.readouterr().err
 
 
 # ----------------------------------------------------------------------------- eval video

@@ -74,7 +74,7 @@ def test_input_decoding_names_layers_of_the_wrongly_decoded_input():
     shading = torch.rand(1, 1, 32, 32, generator=gen) * 0.5 + 0.5
 
     def layers(product):
-        return (product / shading)[0][None], 3 * shading  # any global scale
+        return product / shading, 3 * shading  # any global scale
 
     assert input_decoding(image, *layers(image[None]), mask) is None
     assert input_decoding(image, *layers(srgb_to_linear(image)[None]), mask) == "srgb"

@@ -22,7 +22,7 @@ import gradio as gr
 import numpy as np
 
 from torchiid.app.config import AppConfig
-from torchiid.app.edits import EditSettings, load_texture, render
+from torchiid.app.edits import EditSettings, load_texture, render, texture_of
 from torchiid.app.files import ServerFolder, write_edited, write_layers_zip
 from torchiid.app.objects import highlight
 from torchiid.app.session import Session, open_photo, srgb8, view_shading
@@ -278,7 +278,7 @@ class Callbacks:
         return None, image, size, "Click an object in the photo to select it."
 
     @_user_errors
-    def check_albedo(self, path: str | None) -> str | None:
+    def check_albedo(self, session: Session | None, path: str | None) -> str | None:
         """A new albedo file as it is uploaded: kept if it reads, else removed with a warning.
 
         A file that cannot be read would otherwise stay in its box and fail every later edit.
@@ -286,7 +286,8 @@ class Callbacks:
         if not path:
             return path
         try:
-            load_texture(path)
+            # read once: kept in the photo's session, where the preview takes it from
+            load_texture(path) if session is None else texture_of(session, path)
         except TorchiidError as exc:
             gr.Warning(f"{_message(exc, {path: Path(path).name})}; it is not used", duration=10)
             return None

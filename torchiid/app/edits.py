@@ -91,7 +91,7 @@ def load_texture(path: str) -> torch.Tensor:
         raise ImageError(f"new albedo: {exc}") from None
 
 
-def _texture(session: Session, path: str) -> torch.Tensor:
+def texture_of(session: Session, path: str) -> torch.Tensor:
     """The texture file as ``(3, h, w)`` linear, loaded once per session."""
     key = ("texture", path)
     if key not in session.cache:
@@ -133,7 +133,7 @@ def _object_edits(
     if s.texture is not None:
         # the tiles keep their size relative to the photo at every resolution
         scale = s.scale * layers.size[1] / session.full.size[1]
-        tex = _texture(session, s.texture)
+        tex = texture_of(session, s.texture)
         _, r = edit.replace_albedo(r, sh, m, tex, fit=s.fit, scale=scale)
     if s.hue != 0 or s.chroma != 1:
         _, r = edit.recolour(r, sh, m, hue=s.hue, chroma=s.chroma)

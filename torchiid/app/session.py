@@ -176,7 +176,7 @@ def _app_terms(message: str) -> str:
     )
     cut = message.find("; set TORCHIID_MEMORY_CHECK=0")
     if cut >= 0:  # the server's environment, which the page cannot set
-        message = message[:cut] + "; a smaller photo fits"
+        message = message[:cut] + "; a photo of fewer pixels needs less"
     return message
 
 

@@ -184,9 +184,10 @@ def build_app(config: AppConfig, folder: ServerFolder) -> gr.Blocks:
             )
         for name, control in controls.items():
             if name == "texture":  # a file that cannot be read is removed, not kept failing
-                control.change(calls.check_albedo, [control], [control], **_PRIVATE).success(
-                    calls.preview, preview_in, [compare_view], **_EDIT
+                checked = control.change(
+                    calls.check_albedo, [session, control], [control], **_PRIVATE
                 )
+                checked.success(calls.preview, preview_in, [compare_view], **_EDIT)
             elif isinstance(control, gr.ColorPicker):  # a typed #rrggbb fires no input event
                 control.change(calls.preview, preview_in, [compare_view], **_EDIT)
             else:

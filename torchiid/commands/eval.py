@@ -262,27 +262,39 @@ def run(args: argparse.Namespace) -> int:
     if args.results_dir is not None:
         raise ParameterError(f"eval {args.dataset} takes one folder, got {args.results_dir} too")
     _note_unused(args)
-    method = args.method or "semantic"
-    batch_size = 1 if args.batch_size is None else args.batch_size
-    delta = 0.10 if args.delta is None else args.delta
-    check_ranges(batch_size, args.limit, delta, flags=True)
-    scoring = args.results is not None
-    params = params_from_args(args) if not scoring and method == "semantic" else None
+    # the options not given keep EvalOptions' defaults (the parser leaves them None, so that
+    # the note above can tell what was typed)
+    given = {
+        name: value
+        for name, value in (
+            ("method", args.method),
+            ("batch_size", args.batch_size),
+            ("input", args.input),
+            ("delta", args.delta),
+            ("resume", args.resume),
+        )
+        if value is not None
+    }
+    defaults = EvalOptions()
+    check_ranges(
+        given.get("batch_size", defaults.batch_size),
+        args.limit,
+        given.get("delta", defaults.delta),
+        flags=True,
+    )
+    semantic = given.get("method", defaults.method) == "semantic"
+    params = params_from_args(args) if args.results is None and semantic else None
     options = EvalOptions(
-        method=method,
         params=params,
         output=args.output,
         results_dir=args.results,
         device=args.device,
-        batch_size=batch_size,
         limit=args.limit,
         ids=args.ids,
-        input=args.input or "diffuse",
-        delta=delta,
-        resume=args.resume is not False,
         overwrite=args.overwrite,
         progress=not args.no_progress,
         on_failure=_report_failure,
+        **given,
     )
     result = EvalRunner(args.dataset, args.dir, options).run()
     for note in result.notes:

@@ -9,6 +9,7 @@ runs, with its options.
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import os
 import sys
@@ -86,8 +87,10 @@ def run_eval_video(args: argparse.Namespace) -> int:
         summary_path = args.output / "video-summary.json"
         if os.path.lexists(summary_path) and not args.overwrite:
             raise OutputError(f"{summary_path} exists; pass --overwrite to replace it")
-    eval_flow = args.eval_flow or "dis"
-    space = args.space or "srgb"
+    # the options not given keep evaluate_video's defaults (the parser leaves them None)
+    taken = inspect.signature(evaluate_video).parameters
+    eval_flow = args.eval_flow or taken["method"].default
+    space = args.space or taken["space"].default
     source = open_frames(args.dir)
     show = not args.no_progress
     rows, failures, prev = [], 0, None

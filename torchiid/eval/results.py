@@ -5,10 +5,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
 import torch
 
-from torchiid.core.exceptions import ImageError, ParameterError, TorchiidError
+from torchiid.core.exceptions import ParameterError, ShapeError, TorchiidError
 from torchiid.io import linear_to_srgb, load_image, srgb_to_linear
 
 __all__ = [
@@ -66,23 +65,6 @@ def layer_file(results: str | Path, sample_id: str, layer: str) -> tuple[Path, b
     raise TorchiidError(f"{results}: none of {', '.join(n for n, _ in candidates)}")
 
 
-def _check_npy(path: Path) -> None:
-    """Refuse an ``.npy`` array that is not an image ``(H, W)`` or ``(H, W, C)``."""
-    try:
-        shape = np.load(path, mmap_mode="r", allow_pickle=False).shape
-    except (OSError, ValueError):
-        return  # the loader says what is wrong with the file
-    if len(shape) == 2 or (len(shape) == 3 and shape[-1] in (1, 2, 3, 4)):
-        return
-    hint = ""
-    if len(shape) == 3 and shape[0] in (1, 3):
-        hint = " (channels last: np.moveaxis(a, 0, -1) turns a (C, H, W) array into one)"
-    raise ImageError(
-        f"{path}: holds an array of shape {tuple(shape)}; expected (H, W) or (H, W, 3), "
-        f"as `torchiid decompose --save-npy` writes{hint}"
-    )
-
-
 def read_layer(path: str | Path, layer: str, *, linear: bool = False) -> torch.Tensor:
     """One layer file as ``(1, C, H, W)`` linear (see :func:`load_layer`).
 
@@ -93,16 +75,16 @@ def read_layer(path: str | Path, layer: str, *, linear: bool = False) -> torch.T
 
     Raises:
         ImageError: the file cannot be read, or an ``.npy`` array is not ``(H, W)`` or
-            ``(H, W, C)``.
+            ``(H, W, C)`` (:func:`~torchiid.io.validate.check_pixels`).
     """
     path = Path(path)
-    if path.suffix.lower() == ".npy":
-        _check_npy(path)
     img = load_image(path, linear=linear, alpha="ignore", min_side=1).image
     return (img.mean(dim=0, keepdim=True) if layer == "shading" else img)[None]
 
 
-def load_layer(results: str | Path, sample_id: str, layer: str) -> torch.Tensor:
+def load_layer(
+    results: str | Path, sample_id: str, layer: str, size: tuple[int, int] | None = None
+) -> torch.Tensor:
     """One layer of a results folder as ``(1, C, H, W)`` linear.
 
     The exact files are preferred: ``<id>-<layer>.npy`` (float32 linear, ``(H, W)`` or
@@ -116,6 +98,7 @@ def load_layer(results: str | Path, sample_id: str, layer: str) -> torch.Tensor:
         results: the results folder.
         sample_id: the image's id (file names start with ``<id>-``).
         layer: ``"reflectance"`` or ``"shading"``.
+        size: the image's ``(H, W)``, which the layer must have (``None``: any).
 
     Returns:
         ``(1, 3, H, W)`` reflectance or ``(1, 1, H, W)`` shading, float32, linear.
@@ -125,9 +108,13 @@ def load_layer(results: str | Path, sample_id: str, layer: str) -> torch.Tensor:
         TorchiidError: none of the three files exists.
         ImageError: the file found cannot be read, or is an ``.npy`` array of another shape
             (e.g. channels first).
+        ShapeError: the layer is not of ``size``; the message names the file.
     """
     path, linear = layer_file(results, sample_id, layer)
-    return read_layer(path, layer, linear=linear)
+    x = read_layer(path, layer, linear=linear)
+    if size is not None and tuple(x.shape[-2:]) != tuple(size):
+        raise ShapeError(f"{layer} {path} is {tuple(x.shape[-2:])} but the image is {size}")
+    return x
 
 
 def check_results_folder(results: str | Path, ids: Sequence[str], what: str = "id") -> None:
@@ -147,12 +134,12 @@ def check_results_folder(results: str | Path, ids: Sequence[str], what: str = "i
             files it holds under other names.
     """
     results = Path(results)
+    if not ids:
+        return
     for i in ids:
         for layer in LAYERS:
             if any((results / name).is_file() for name, _ in layer_names(i, layer)):
                 return
-    if not ids:
-        return
     others = sorted(
         p.name
         for p in results.iterdir()
@@ -161,14 +148,13 @@ def check_results_folder(results: str | Path, ids: Sequence[str], what: str = "i
     held = (
         f"; it holds {', '.join(others[:3])}{' ...' if len(others) > 3 else ''}"
         if others
-        else ("; it holds no layer files")
+        else "; it holds no layer files"
     )
-    example = ids[0]
+    pairs = zip(*(layer_names("<id>", layer) for layer in LAYERS), strict=True)
+    looked = ", else ".join(" and ".join(name for name, _ in pair) for pair in pairs)
     raise TorchiidError(
-        f"{results}: no layers of any of the {len(ids)} image(s) to score: looked for "
-        f"<id>-reflectance.npy and <id>-shading.npy, else <id>-reflectance-linear16.png and "
-        f"<id>-shading.exr, else <id>-reflectance.png and <id>-shading.png, with <id> the "
-        f"{what} (e.g. {example}-reflectance.npy){held}"
+        f"{results}: no layers of any of the {len(ids)} image(s) to score: looked for {looked}, "
+        f"with <id> the {what} (e.g. {ids[0]}-reflectance.npy){held}"
     )
 
 

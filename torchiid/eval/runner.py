@@ -53,7 +53,7 @@ from tqdm import tqdm
 
 from torchiid._version import __version__
 from torchiid.core.device import resolve_device
-from torchiid.core.exceptions import ShapeError, TorchiidError
+from torchiid.core.exceptions import TorchiidError
 from torchiid.eval.datasets import DATASETS, EvalDataset, Sample, check_dataset, open_dataset
 from torchiid.eval.methods import BASELINES, METHODS, method_parameters, run_method
 from torchiid.eval.options import OPTION_NAMES, EvalOptions
@@ -71,8 +71,7 @@ from torchiid.eval.results import (
     LAYERS,
     check_results_folder,
     input_decoding,
-    layer_file,
-    read_layer,
+    load_layer,
 )
 from torchiid.eval.scoring import COUNT_COLUMNS, METRICS, pooled_saw_ap, score_sample
 
@@ -107,12 +106,12 @@ _ID_NAMES = {
 #: the note on layers that look decomposed from the wrongly decoded input
 _DECODING_NOTES = {
     "srgb": (
-        "multiply to the input decoded as sRGB, but the dataset's input is linear: were "
-        "they decomposed without --linear (torchiid decompose --linear)?"
+        "look decomposed from the image read as sRGB, but this dataset's images are linear: "
+        "decompose them with torchiid decompose --linear"
     ),
     "linear": (
-        "multiply to the input's sRGB values taken as linear, but the dataset decodes its "
-        "photos from sRGB: were they decomposed with --linear?"
+        "look decomposed from the photo read as linear (--linear), but this dataset's photos "
+        "are sRGB: decompose them without --linear"
     ),
 }
 
@@ -347,14 +346,7 @@ class _Run:
         results = self.runner.results_dir
         assert results is not None  # scoring a results folder
         size = tuple(sample.image.shape[-2:])
-        layers = []
-        for layer in LAYERS:
-            path, linear = layer_file(results, sample.id, layer)
-            x = read_layer(path, layer, linear=linear)
-            if tuple(x.shape[-2:]) != size:
-                raise ShapeError(f"{layer} {path} is {tuple(x.shape[-2:])} but the image is {size}")
-            layers.append(x)
-        refl, shading = layers
+        refl, shading = (load_layer(results, sample.id, layer, size) for layer in LAYERS)
         self.record(sample, refl, shading, time.perf_counter() - t0)
         mask = _method_mask(self.runner.dataset, sample)
         decoding = input_decoding(sample.image, refl, shading, mask)

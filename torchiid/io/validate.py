@@ -49,6 +49,12 @@ def check_pixels(
     if h == 0 or w == 0:
         raise fail(path, "has zero size")
     if c not in (1, 2, 3, 4):
+        if arr.ndim == 3 and arr.shape[0] in (1, 3, 4):  # a (C, H, W) array, as torch keeps it
+            raise fail(
+                path,
+                f"holds an array of shape {tuple(arr.shape)}; expected (H, W) or (H, W, 3), "
+                "channels last (np.moveaxis(a, 0, -1) turns a (C, H, W) array into one)",
+            )
         raise fail(path, f"has {c} channels; expected 1 (gray), 3 (RGB) or 4 (RGBA)")
     depth = bit_depth(path, arr.dtype)
     if depth == 32 and not np.isfinite(arr).all():
@@ -79,7 +85,7 @@ def clip_negatives(path: Path, image: np.ndarray) -> tuple[int, float]:
         if not -lowest <= NEGATIVE_DEPTH * level:
             raise fail(
                 path,
-                f"has negative values ({share:.1%} of them, down to {lowest:.4g}); expected "
+                f"has negative values ({share:.1%} of its values, down to {lowest:.4g}); expected "
                 "intensities >= 0, not a signed image such as a difference, normals or logs",
             )
     np.maximum(image, 0, out=image)
