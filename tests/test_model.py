@@ -105,6 +105,36 @@ def test_module_equals_function_and_batch_equals_single():
         assert torch.allclose(out.shading[i : i + 1], single.shading, atol=1e-5)
 
 
+def test_torch_compile_compiles_the_model_around_the_decomposer():
+    """A model holding the decomposer compiles; the decomposition itself runs as it is."""
+
+    class Relit(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.decomposer = IntrinsicDecomposer(FAST)
+            self.gain = torch.nn.Parameter(torch.tensor(1.5))
+
+        def forward(self, image):
+            out = self.decomposer(image)
+            return out.reflectance * (self.gain * out.shading)
+
+    graphs = []
+
+    def backend(gm, example_inputs):  # records what dynamo hands over, runs it eagerly
+        graphs.append(gm)
+        return gm.forward
+
+    torch._dynamo.reset()
+    model, image = Relit(), mondrian(64, 64, seed=2).image
+    eager = model(image)
+    compiled = torch.compile(model, backend=backend)(image)
+    assert torch.equal(compiled, eager)
+    ops = [n.target for g in graphs for n in g.graph.nodes if n.op == "call_function"]
+    assert ops, "nothing around the decomposer was compiled"
+    assert len(ops) <= 4, f"the decomposition was traced: {len(ops)} operations"
+    torch._dynamo.reset()
+
+
 def test_float64_agrees_with_float32():
     s = mondrian(64, 64, seed=7)
     o32 = decompose(s.image, FAST)

@@ -66,6 +66,10 @@ __all__ = [
 ]
 
 
+# torch.compile leaves the method eager: its steps are data-dependent solver loops, NumPy,
+# numba and onnxruntime calls, which dynamo would split into hundreds of graphs (and inductor
+# mis-compiles some of them) for no gain; a model around it still compiles
+@torch.compiler.disable
 @torch.no_grad()
 def decompose(
     image: torch.Tensor,
@@ -255,6 +259,10 @@ class IntrinsicDecomposer(nn.Module):
     It has no tensors of its own; its ``state_dict()`` holds its parameters (the
     ``_extra_state`` entry), so a larger model saved and loaded keeps the decomposer's settings,
     and its ``repr`` names the nearest preset and the values that differ from it.
+
+    ``torch.compile`` of a model holding it compiles the model around it and runs the
+    decomposition as it is (:func:`decompose` is excluded from compilation: its solver loops
+    depend on the data, and its features and kernels are NumPy, numba and onnxruntime calls).
 
     Args:
         params: the parameters (default: the ``default`` preset).

@@ -15,10 +15,13 @@ cost of a 24-megapixel photo is its few full-resolution layers, not a dozen floa
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
+
+from torchiid.core.bands import BAND_PIXELS as BAND_PIXELS  # the bands of row_bands
+from torchiid.core.bands import row_bands
 
 __all__ = [
     "working_size",
@@ -28,9 +31,6 @@ __all__ = [
     "bilinear_rows",
     "row_bands",
 ]
-
-#: pixels per band of the banded full-resolution passes (about 1 megapixel)
-BAND_PIXELS = 1 << 20
 
 
 def working_size(height: int, width: int, max_side: int) -> tuple[int, int]:
@@ -46,13 +46,6 @@ def downsample(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     if tuple(x.shape[-2:]) == tuple(size):
         return x
     return F.interpolate(x, size=size, mode="area")
-
-
-def row_bands(height: int, width: int, pixels: int = BAND_PIXELS) -> Iterator[slice]:
-    """Slices of rows covering ``height`` rows, each of about ``pixels`` pixels."""
-    rows = max(1, pixels // max(width, 1))
-    for y in range(0, height, rows):
-        yield slice(y, min(height, y + rows))
 
 
 def _linear_taps(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from torchiid.core.bands import by_rows
 from torchiid.core.exceptions import ParameterError
 from torchiid.edit.common import (
     EPS,
@@ -74,17 +75,36 @@ def illumination_intensity(
         merged = merge(image, reflectance, shading, sigma, rho)
     if blur is None:
         blur = 4 * default_blur(*image.shape[-2:])
-    e1 = ((rho - reflectance) + (shading - sigma)) / 2
-    e2 = (safe_div(rho, reflectance) + safe_div(shading, sigma)) / 2
-    sm = merged.shading.mean(1, keepdim=True)
-    l1 = gaussian(e1.abs().mean(1, keepdim=True), blur)
-    l2 = gaussian((e2 - 1).abs().mean(1, keepdim=True) * sm, blur)
+    e1, e2, sm = by_rows(_estimates, reflectance, shading, sigma, rho, merged.shading)
+    l1 = gaussian(e1, blur)
+    l2 = gaussian(e2, blur)
     light = {"e1": l1, "e2": l2, "mean": (l1 + l2) / 2, "max": torch.maximum(l1, l2)}[combine]
     peak = light.flatten(1).amax(1).clamp_min(EPS).view(-1, 1, 1, 1)
     white = white_level(merged.shading)
-    fade = (1 - sm / white).clamp_min(0) ** 2
-    new_s = merged.shading + strength * white * (light / peak) * fade
-    return merged.reflectance * new_s, new_s
+
+    def lit(
+        light: torch.Tensor, sm: torch.Tensor, ms: torch.Tensor, mr: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        fade = (1 - sm / white).clamp_min(0) ** 2
+        new_s = ms + strength * white * (light / peak) * fade
+        return mr * new_s, new_s
+
+    image_out, new_s = by_rows(lit, light, sm, merged.shading, merged.reflectance)
+    return image_out, new_s
+
+
+def _estimates(
+    reflectance: torch.Tensor,
+    shading: torch.Tensor,
+    sigma: torch.Tensor,
+    rho: torch.Tensor,
+    merged_shading: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``|E1|`` and ``|E2 − 1| · S_m`` before the filter, and ``S_m``, per pixel."""
+    e1 = ((rho - reflectance) + (shading - sigma)) / 2
+    e2 = (safe_div(rho, reflectance) + safe_div(shading, sigma)) / 2
+    sm = merged_shading.mean(1, keepdim=True)
+    return e1.abs().mean(1, keepdim=True), (e2 - 1).abs().mean(1, keepdim=True) * sm, sm
 
 
 class IlluminationIntensity(nn.Module):

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from torchiid.core.bands import by_rows
 from torchiid.edit.common import (
     EPS,
     check_edit_numbers,
@@ -86,16 +87,35 @@ def merge(
     """
     check_layers(image, reflectance, shading, sigma, rho)
     check_edit_numbers(image, blur=blur)
+    if blur is None:
+        blur = default_blur(*image.shape[-2:])
+    sparse, detailed, c1, c2, mean_c = by_rows(_residues, image, reflectance, shading, sigma, rho)
+    c = gaussian(mean_c, blur).clamp_min(EPS)
+    merged_r, merged_s = by_rows(_merged, image, shading, sigma, c)
+    return Merged(merged_r, merged_s, c, c1, c2, sparse, detailed)
+
+
+def _residues(
+    image: torch.Tensor,
+    reflectance: torch.Tensor,
+    shading: torch.Tensor,
+    sigma: torch.Tensor,
+    rho: torch.Tensor,
+) -> tuple[torch.Tensor, ...]:
+    """``R · σ``, ``ρ · S``, ``C1``, ``C2`` and their mean, per pixel."""
     sparse = reflectance * sigma
     detailed = rho * shading
     c1 = safe_div(image, sparse)
     c2 = safe_div(image, detailed)
-    if blur is None:
-        blur = default_blur(*image.shape[-2:])
-    c = gaussian((c1 + c2) / 2, blur).clamp_min(EPS)
+    return sparse, detailed, c1, c2, (c1 + c2) / 2
+
+
+def _merged(
+    image: torch.Tensor, shading: torch.Tensor, sigma: torch.Tensor, c: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The merged reflectance and shading, per pixel."""
     merged_s = (shading / c + sigma * c) / 2
-    merged_r = safe_div(image, merged_s, 0.0)
-    return Merged(merged_r, merged_s, c, c1, c2, sparse, detailed)
+    return safe_div(image, merged_s, 0.0), merged_s
 
 
 class Merge(nn.Module):

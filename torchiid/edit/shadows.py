@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from torchiid.core.bands import by_rows
 from torchiid.core.exceptions import ParameterError
 from torchiid.edit.common import (
     EPS,
@@ -49,16 +50,24 @@ def soften_shadows(
     check_edit_numbers(reflectance, amount=amount, feather=feather)
     if not 0 < pivot <= 1:
         raise ParameterError(f"pivot must be in (0, 1], got {pivot}")
-    y = shading.mean(1, keepdim=True).clamp_min(EPS)
     p = white_level(shading, pivot)
-    factor = torch.exp(-amount * (y.log() - p.log()))
+    w = None
     if mask is not None:
         w = region(mask, reflectance).to(shading.dtype)
         if feather > 0:
             w = gaussian(w, feather)
-        factor = 1 + w * (factor - 1)
-    new_s = shading * factor
-    return reflectance * new_s, new_s
+
+    def softened(
+        r: torch.Tensor, s: torch.Tensor, *w: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        y = s.mean(1, keepdim=True).clamp_min(EPS)
+        factor = torch.exp(-amount * (y.log() - p.log()))
+        if w:
+            factor = 1 + w[0] * (factor - 1)
+        new_s = s * factor
+        return r * new_s, new_s
+
+    return by_rows(softened, reflectance, shading, *(() if w is None else (w,)))
 
 
 class SoftenShadows(nn.Module):

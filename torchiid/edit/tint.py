@@ -9,6 +9,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from torchiid.core.bands import by_rows
 from torchiid.core.stats import image_quantile
 from torchiid.edit.colour import colour_ab, lab_to_linear, linear_to_lab
 from torchiid.edit.common import check_edit_numbers, check_layers, white_level
@@ -73,12 +74,16 @@ def illumination_colour(
     tint_ab = colour_ab(tint, shading)
     s3 = shading.expand(-1, 3, -1, -1)
     white = white_level(s3)
-    lab = linear_to_lab(s3 / white)
     shift = torch.cat([torch.zeros_like(tint_ab[:, :1]), tint_ab], 1) * strength
-    full = lab_to_linear(lab + shift).clamp_min(0) * white
     w = light_weights(shading, percentile, radius)
-    new_s = s3 + w * (full - s3)
-    return reflectance * new_s, new_s
+
+    def tinted(s3: torch.Tensor, w: torch.Tensor, r: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        full = lab_to_linear(linear_to_lab(s3 / white) + shift).clamp_min(0) * white
+        new_s = s3 + w * (full - s3)
+        return r * new_s, new_s
+
+    image, new_s = by_rows(tinted, s3, w, reflectance)
+    return image, new_s
 
 
 class IlluminationColour(nn.Module):

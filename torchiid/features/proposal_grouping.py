@@ -29,7 +29,7 @@ def compact_labels(key: np.ndarray, n_keys: int) -> np.ndarray:
     """Relabel non-negative ints to ``0 .. n_distinct - 1``, keeping their order."""
     if n_keys <= 1 << 26:  # a counting pass beats sorting
         present = np.bincount(key, minlength=n_keys) > 0
-        return (np.cumsum(present) - 1)[key]
+        return (np.cumsum(present, dtype=np.int64) - 1)[key]
     return np.unique(key, return_inverse=True)[1].reshape(-1)
 
 

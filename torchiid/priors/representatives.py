@@ -104,7 +104,7 @@ def segment_layout(labels: torch.Tensor, mask: torch.Tensor | None = None) -> Se
     if int(key.max()) < 4 * key.numel():
         present = torch.bincount(key) > 0
         seg_keys = torch.nonzero(present).squeeze(1)
-        seg = (torch.cumsum(present, 0) - 1)[key]
+        seg = (torch.cumsum(present, 0, dtype=torch.long) - 1)[key]
     else:
         seg_keys, seg = torch.unique(key, return_inverse=True)
     m = seg_keys.numel()
