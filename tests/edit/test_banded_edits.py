@@ -1,6 +1,5 @@
 """The edits computed band by band of rows (large photos) give the whole image's result."""
 
-import pytest
 import torch
 
 import torchiid.core.bands as bands

@@ -64,9 +64,9 @@ def by_rows(fn: Callable[..., Out], *tensors: torch.Tensor) -> Out:
     for rows in row_bands(h, w, CACHE_PIXELS):
         part = fn(*(t[..., rows, :] for t in tensors))
         single = not isinstance(part, tuple)
-        parts = (part,) if single else part
+        parts: tuple[torch.Tensor, ...] = (part,) if single else part  # type: ignore[assignment]
         if not out:
-            out = tuple(p.new_empty((*p.shape[:-2], h, p.shape[-1])) for p in parts)
-        for whole, p in zip(out, parts, strict=True):
-            whole[..., rows, :] = p
+            out = tuple(x.new_empty((*x.shape[:-2], h, x.shape[-1])) for x in parts)
+        for whole, band in zip(out, parts, strict=True):
+            whole[..., rows, :] = band
     return out[0] if single else out  # type: ignore[return-value]
