@@ -10,7 +10,7 @@ memory; bands of :data:`CACHE_PIXELS`, :func:`by_rows`).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from typing import TypeVar
+from typing import Any
 
 import torch
 
@@ -22,8 +22,6 @@ BAND_PIXELS = 1 << 20
 #: pixels per band of :func:`by_rows`: 256 Ki, 3 MB for a float32 RGB temporary
 CACHE_PIXELS = 1 << 18
 
-Out = TypeVar("Out", torch.Tensor, tuple[torch.Tensor, ...])
-
 
 def row_bands(height: int, width: int, pixels: int = BAND_PIXELS) -> Iterator[slice]:
     """Slices of rows covering ``height`` rows, each of about ``pixels`` pixels."""
@@ -32,7 +30,7 @@ def row_bands(height: int, width: int, pixels: int = BAND_PIXELS) -> Iterator[sl
         yield slice(y, min(height, y + rows))
 
 
-def by_rows(fn: Callable[..., Out], *tensors: torch.Tensor) -> Out:
+def by_rows(fn: Callable[..., Any], *tensors: torch.Tensor) -> Any:
     """``fn(*tensors)`` for a per-pixel ``fn``, computed on bands of rows on the CPU.
 
     ``fn`` must compute each output pixel from the same pixel of its inputs (arithmetic,
@@ -60,13 +58,14 @@ def by_rows(fn: Callable[..., Out], *tensors: torch.Tensor) -> Out:
     if h * w <= 2 * CACHE_PIXELS or any(t.device.type != "cpu" for t in tensors):
         return fn(*tensors)
     single = True
-    out: tuple[torch.Tensor, ...] = ()
+    out: list[torch.Tensor] = []
     for rows in row_bands(h, w, CACHE_PIXELS):
         part = fn(*(t[..., rows, :] for t in tensors))
-        single = not isinstance(part, tuple)
-        parts: tuple[torch.Tensor, ...] = (part,) if single else part  # type: ignore[assignment]
+        single = isinstance(part, torch.Tensor)
+        parts: tuple[torch.Tensor, ...] = (part,) if isinstance(part, torch.Tensor) else part
         if not out:
-            out = tuple(x.new_empty((*x.shape[:-2], h, x.shape[-1])) for x in parts)
+            for first in parts:
+                out.append(first.new_empty((*first.shape[:-2], h, first.shape[-1])))
         for whole, band in zip(out, parts, strict=True):
             whole[..., rows, :] = band
-    return out[0] if single else out  # type: ignore[return-value]
+    return out[0] if single else tuple(out)
