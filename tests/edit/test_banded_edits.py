@@ -30,5 +30,10 @@ def test_banded_edits_equal_the_whole_image(scene, box, monkeypatch):
         assert len(banded[name]) == len(outputs)
         for a, b in zip(banded[name], outputs, strict=True):
             assert a.shape == b.shape, name
-            # exp, log and pow may round their last bit differently at a band's end
-            torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14, msg=name)
+            # exp, log and pow may round their last bit differently at a band's end; CIELab's
+            # curve steps by about 1e-7 at its threshold (kornia's 7.787 slope), and such a bit
+            # can cross it
+            rtol = 1e-6 if name == "light colour" else 1e-12
+            torch.testing.assert_close(
+                a, b, rtol=rtol, atol=1e-14, msg=lambda m, n=name: f"{n}: {m}"
+            )
