@@ -42,8 +42,8 @@ def by_rows(fn: Callable[..., Any], *tensors: torch.Tensor) -> Any:
     bit or two for functions such as ``pow`` and ``exp``, whose vectorised and scalar code
     paths round differently and which a band's end moves from one to the other (as a change
     of the thread count does for the whole image); where ``fn`` steps (CIELab's curve at its
-    threshold), such a bit can move a value by the step. GPU tensors and images of up to two bands
-    are passed to ``fn`` whole.
+    threshold), such a bit can move a value by the step. GPU tensors and images of up to two
+    bands are passed to ``fn`` whole.
 
     Args:
         fn: the per-pixel function.

@@ -89,8 +89,7 @@ def illumination_intensity(
         new_s = ms + strength * white * (light / peak) * fade
         return mr * new_s, new_s
 
-    image_out, new_s = by_rows(lit, light, sm, merged.shading, merged.reflectance)
-    return image_out, new_s
+    return by_rows(lit, light, sm, merged.shading, merged.reflectance)
 
 
 def _estimates(

@@ -82,8 +82,7 @@ def illumination_colour(
         new_s = s3 + w * (full - s3)
         return r * new_s, new_s
 
-    image, new_s = by_rows(tinted, s3, w, reflectance)
-    return image, new_s
+    return by_rows(tinted, s3, w, reflectance)
 
 
 class IlluminationColour(nn.Module):

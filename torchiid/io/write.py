@@ -104,7 +104,7 @@ def save_image(
         raise ImageError(f"{path}: a picture is (H, W) or (H, W, C), got shape {arr.shape}")
     payload = np.empty(arr.shape, np.uint8 if encoding == "srgb8" else np.uint16)
     # a band of rows at a time: the encoding's steps then read back what the one before wrote
-    # from the CPU's caches, not from memory (a 12-megapixel photo: 3 times as fast)
+    # from the CPU's caches, not from memory
     for rows in row_bands(arr.shape[0], arr.shape[1], CACHE_PIXELS):
         codes = _codes(arr[rows], encoding)
         payload[rows] = codes[..., ::-1] if codes.ndim == 3 else codes  # RGB -> BGR for OpenCV
