@@ -1,4 +1,6 @@
 import dataclasses
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -454,3 +456,10 @@ def test_the_module_shows_and_saves_its_parameters(tmp_path):
     assert loaded.params == params
     with pytest.raises(ParameterError, match="not saved by an IntrinsicDecomposer"):
         loaded.load_state_dict({"_extra_state": {"weights": 1}})
+
+
+def test_loading_the_method_does_not_load_torch_compilers_machinery():
+    """dynamo costs a process over a second and 80 MB; only a compilation should load it."""
+    code = "import sys, torchiid, torchiid.model; print('torch._dynamo' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

@@ -66,10 +66,6 @@ __all__ = [
 ]
 
 
-# torch.compile leaves the method eager: its steps are data-dependent solver loops, NumPy,
-# numba and onnxruntime calls, which dynamo would split into hundreds of graphs (and inductor
-# mis-compiles some of them) for no gain; a model around it still compiles
-@torch.compiler.disable
 @torch.no_grad()
 def decompose(
     image: torch.Tensor,
@@ -287,7 +283,14 @@ class IntrinsicDecomposer(nn.Module):
 
     def forward(self, image: torch.Tensor, mask: torch.Tensor | None = None) -> Decomposition:
         """Decompose ``image``; see :func:`decompose`."""
-        return decompose(image, self.params, mask=mask, return_iterations=self.return_iterations)
+        run = decompose
+        if torch.compiler.is_compiling():
+            # left eager: its steps are data-dependent solver loops, NumPy, numba and
+            # onnxruntime calls, which dynamo would split into hundreds of graphs (and inductor
+            # mis-compiles some) for no gain. Marked here, not on decompose itself:
+            # torch.compiler.disable imports dynamo, over a second and 80 MB for every process
+            run = torch.compiler.disable(decompose)
+        return run(image, self.params, mask=mask, return_iterations=self.return_iterations)
 
     def extra_repr(self) -> str:
         """The nearest preset and the values that differ from it."""
