@@ -286,6 +286,16 @@ def test_threads_are_set_for_the_run_and_restored(photo, tmp_path, monkeypatch):
     assert torch.get_num_threads() == before and os.environ.get("OMP_NUM_THREADS") == omp
 
 
+def test_only_the_console_script_sets_the_process_allocator(photo, tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr("torchiid.core.memory.share_one_malloc_arena", lambda: calls.append(1))
+    argv = ["decompose", str(tmp_path / "missing.png"), "-o", str(tmp_path / "out"), "-q"]
+    assert main(argv) == 1  # called from Python: the caller's process keeps its allocator
+    assert calls == []
+    assert main(argv, own_process=True) == 1
+    assert calls == [1]
+
+
 # ----------------------------------------------------------------------------- verbosity
 
 
@@ -485,7 +495,7 @@ import torchiid.cli as cli
 def child():
     time.sleep(0.5)
     open({str(flag)!r}, "w").close()
-def main():
+def main(own_process=False):
     multiprocessing.get_context("spawn").Process(target=child).start()
     return 0
 cli.main = main
@@ -507,7 +517,7 @@ cli.main = main
 
 def test_the_console_script_delivers_buffered_output_before_it_leaves():
     # a piped stdout is block-buffered: what a command printed must still arrive
-    before = "import torchiid.cli as cli\ncli.main = lambda: (print('a table row'), 3)[1]"
+    before = "import torchiid.cli as cli\ncli.main = lambda **kw: (print('a table row'), 3)[1]"
     done = _console([], before)
     assert done.returncode == 3
     assert done.stdout == "a table row\n"

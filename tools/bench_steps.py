@@ -128,7 +128,8 @@ def measure(
 ) -> dict:
     """Median seconds per step of ``paths`` as one batch, and this process's peak memory.
 
-    Sets the process up as ``torchiid decompose`` does (:func:`~torchiid.collection.worker_state`),
+    Sets the process up as ``torchiid decompose`` does (one allocator arena,
+    :func:`~torchiid.collection.worker_state`),
     warms up once (unless not ``warm_up``), then measures ``repeats`` passes. Returns
     ``{"steps": {name: seconds}, "rss_mb": ..., "batch": ..., "threads": ...}`` and, on CUDA,
     ``"cuda_mb"``.
@@ -136,6 +137,9 @@ def measure(
     import torch
 
     from torchiid.collection import RunSettings, params_hash, worker_state
+    from torchiid.core.memory import share_one_malloc_arena
+
+    share_one_malloc_arena()
 
     settings = RunSettings(
         out=out, params=params, device=device, overwrite=True, threads=threads or None

@@ -122,8 +122,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``torchiid`` console script; returns the exit status."""
+def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int:
+    """Entry point of the ``torchiid`` console script; returns the exit status.
+
+    ``own_process``: the process is the command's alone (the console script), so its
+    allocator is set for the run (:func:`~torchiid.core.memory.share_one_malloc_arena`);
+    called from Python, the caller's process keeps its own.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.quiet and args.verbose:
@@ -150,9 +155,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     warnings.filterwarnings("always", category=InputWarning)
     warnings.showwarning = _notes(warnings.showwarning, args.quiet)
     try:
-        from torchiid.core.memory import memory_limit
+        from torchiid.core.memory import memory_limit, share_one_malloc_arena
 
         memory_limit()  # a bad TORCHIID_MEMORY_LIMIT stops the run here, not once per image
+        if own_process:
+            share_one_malloc_arena()
         if threads is not None:
             import torch
 
@@ -185,7 +192,7 @@ def console_main() -> NoReturn:
     teardown. A run that still has child processes (a pool that has not been joined) takes
     the interpreter's ordinary exit, which waits for them.
     """
-    status = main()
+    status = main(own_process=True)
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()

@@ -50,6 +50,7 @@ from torchiid.collection.job import (
 from torchiid.collection.settings import RunSettings
 from torchiid.collection.worker import SetupError, worker_state
 from torchiid.core.exceptions import TorchiidError
+from torchiid.core.memory import share_one_malloc_arena
 
 __all__ = ["WorkerPool", "available_cores", "remove_temporary_sets"]
 
@@ -115,6 +116,7 @@ def _worker_main(conn, settings: RunSettings, decompose_fn: Callable | None) -> 
     kwargs = {} if decompose_fn is None else {"decompose_fn": decompose_fn}
     try:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, _SIGNALS)
+        share_one_malloc_arena()  # a process of the pool's own, as the command line's
         try:
             worker_state(settings)
         except SetupError as exc:  # the parent stops the run: no image could be processed
