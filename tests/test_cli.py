@@ -286,7 +286,7 @@ def test_threads_are_set_for_the_run_and_restored(photo, tmp_path, monkeypatch):
     assert torch.get_num_threads() == before and os.environ.get("OMP_NUM_THREADS") == omp
 
 
-def test_only_the_console_script_sets_the_process_allocator(photo, tmp_path, monkeypatch):
+def test_only_the_console_script_sets_the_process_allocator(tmp_path, monkeypatch):
     calls = []
     monkeypatch.setattr("torchiid.core.memory.share_one_malloc_arena", lambda: calls.append(1))
     argv = ["decompose", str(tmp_path / "missing.png"), "-o", str(tmp_path / "out"), "-q"]

@@ -129,8 +129,8 @@ def measure(
     """Median seconds per step of ``paths`` as one batch, and this process's peak memory.
 
     Sets the process up as ``torchiid decompose`` does (one allocator arena,
-    :func:`~torchiid.collection.worker_state`),
-    warms up once (unless not ``warm_up``), then measures ``repeats`` passes. Returns
+    :func:`~torchiid.collection.worker_state`), warms up once (unless not ``warm_up``), then
+    measures ``repeats`` passes. Returns
     ``{"steps": {name: seconds}, "rss_mb": ..., "batch": ..., "threads": ...}`` and, on CUDA,
     ``"cuda_mb"``.
     """

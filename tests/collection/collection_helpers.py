@@ -23,3 +23,35 @@ def photo(path: Path, seed: int = 0, w: int = 80, h: int = 64) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     assert cv2.imwrite(str(path), np.ascontiguousarray(img))
     return path
+
+
+def decompose_counting_arenas(image, params, **kwargs):
+    """:func:`torchiid.model.decompose`, after writing how many malloc arenas the process has.
+
+    A worker's decomposition for the pool tests: a new thread allocates first (glibc gives
+    it an arena of its own unless the process shares one), then glibc's ``malloc_stats``
+    (one ``Arena N:`` block per arena, on stderr) goes to ``$TORCHIID_TEST_ARENAS``.
+    """
+    import ctypes
+    import os
+    import threading
+
+    from torchiid.model import decompose
+
+    def work() -> None:
+        blocks = [bytearray(200_000) for _ in range(8)]  # malloc'd, below the mmap threshold
+        del blocks
+
+    t = threading.Thread(target=work)
+    t.start()
+    t.join()
+    fd = os.open(os.environ["TORCHIID_TEST_ARENAS"], os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
+    saved = os.dup(2)
+    try:
+        os.dup2(fd, 2)
+        ctypes.CDLL(None).malloc_stats()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(fd)
+    return decompose(image, params, **kwargs)

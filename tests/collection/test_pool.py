@@ -23,7 +23,7 @@ from torchiid.io.inputs import list_inputs
 from torchiid.io.layers import layer_file_names
 from torchiid.params import Parameters
 
-from collection_helpers import FAST
+from collection_helpers import FAST, decompose_counting_arenas, photo
 
 
 def _kill_when_held(folder, stem, sig=signal.SIGKILL, timeout=90):
@@ -175,3 +175,16 @@ def test_a_script_without_a_main_guard_is_told_why_its_workers_die(library, tmp_
     last = run.stderr.strip().splitlines()[-1]
     assert "the worker processes die before they take an image" in last
     assert 'if __name__ == "__main__":' in last
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc only")
+def test_a_worker_s_threads_share_one_malloc_arena(tmp_path, monkeypatch):
+    count = tmp_path / "arenas.txt"
+    monkeypatch.setenv("TORCHIID_TEST_ARENAS", str(count))  # the worker inherits it
+    monkeypatch.delenv("MALLOC_ARENA_MAX", raising=False)
+    src = photo(tmp_path / "in" / "a.png")
+    settings = RunSettings(out=tmp_path / "out", params=Parameters().replace(iterations=1))
+    items = list_inputs([src])
+    summary = run_collection(items, settings, workers=1, decompose_fn=decompose_counting_arenas)
+    assert summary.done == 1
+    assert count.read_text().count("Arena ") == 1  # glibc's default: one more per thread
