@@ -5,8 +5,11 @@ from __future__ import annotations
 import pytest
 
 from torchiid.cli import main
-from torchiid.collection import ImageJob, Manifest, RunSettings
+from torchiid.collection import ImageJob, Manifest, RunSettings, run_collection
 from torchiid.collection.manifest import read_records
+from torchiid.features import patches
+from torchiid.io.inputs import list_inputs
+from torchiid.model import decompose
 from torchiid.params import Parameters
 
 from collection_helpers import FAST, photo
@@ -107,3 +110,28 @@ def test_a_run_whose_images_all_fail_gives_no_rate(library, tmp_path, capsys):
     assert main(argv) == 1
     err = capsys.readouterr().err
     assert "0 done, 0 skipped, 1 failed" in err and "images/minute" not in err
+
+
+@pytest.mark.parametrize("release", [True, False])
+def test_a_run_here_gives_back_the_cnn_after_the_last_image_s_features(
+    tmp_path, monkeypatch, release
+):
+    events: list[str] = []
+    monkeypatch.setattr(patches, "release_feature_extractors", lambda: events.append("released"))
+
+    def spying(image, params, *, progress, **kwargs):
+        def spy(stage, k, total):
+            events.append(stage)
+            progress(stage, k, total)
+
+        return decompose(image, params, progress=spy, **kwargs)
+
+    srcs = [photo(tmp_path / "in" / f"{n}.png", n) for n in range(2)]
+    settings = RunSettings(out=tmp_path / "out", params=Parameters().replace(iterations=1))
+    summary = run_collection(
+        list_inputs(srcs), settings, decompose_fn=spying, release_models=release
+    )
+    assert summary.done == 2
+    # the second image's features are the last the run needs: released before its solves
+    last = ["features", "released", "iteration"] if release else ["features", "iteration"]
+    assert events == ["features", "iteration", *last]

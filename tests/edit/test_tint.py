@@ -1,10 +1,14 @@
 """torchiid.edit.tint: illumination colour near the light regions."""
 
+import cv2
+import numpy as np
 import pytest
 import torch
+from scipy import ndimage
 
 from torchiid.core.exceptions import ParameterError
 from torchiid.edit import IlluminationColour, illumination_colour, light_weights
+from torchiid.edit.tint import _distance_to_nearest_zero
 
 
 def test_illumination_colour_far_pixels_unchanged(scene):
@@ -37,6 +41,25 @@ def test_light_weights_fall_from_one_to_zero_with_distance(scene):
     assert float(w.min()) == 0.0 and float(w.max()) == 1.0
     # a wider radius reaches farther: never lower weights
     assert bool((light_weights(s, 0.9, 0.5) >= w - 1e-6).all())
+
+
+def test_light_weights_are_the_same_on_every_call(scene):
+    # the weights of one shading must not change from call to call (OpenCV's IPP transform
+    # gives some of this scene's distances one float32 step off on every other call)
+    first = light_weights(scene.shading, 0.9, 0.3)
+    for _ in range(8):
+        assert torch.equal(light_weights(scene.shading, 0.9, 0.3), first)
+
+
+def test_distances_are_exact_and_ipp_stays_on_in_the_caller():
+    rng = np.random.default_rng(0)
+    before = cv2.ipp.useIPP()
+    for h, w, p in [(48, 64, 0.9), (37, 121, 0.98), (150, 90, 0.6), (1, 30, 0.9)]:
+        mask = (rng.random((h, w)) < p).astype(np.uint8)
+        mask[h // 2, w // 3] = 0
+        exact = ndimage.distance_transform_edt(mask).astype(np.float32)
+        assert np.array_equal(_distance_to_nearest_zero(mask), exact)
+    assert cv2.ipp.useIPP() == before
 
 
 @pytest.mark.parametrize("kwargs", [{"percentile": 1.0}, {"percentile": 0.0}, {"radius": 0.0}])

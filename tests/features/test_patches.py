@@ -110,6 +110,22 @@ def test_onnx_batch_runs_one_image_at_a_time_and_releases_the_arena_once(image, 
     torch.testing.assert_close(batch.features, expected, atol=0, rtol=0)
 
 
+def test_released_extractors_are_loaded_again_with_the_same_features(image, onnx_path, monkeypatch):
+    from torchiid.features import onnx_backend
+
+    monkeypatch.setattr(onnx_backend, "ensure_onnx_model", lambda cache_dir=None: onnx_path)
+    patches_mod.release_feature_extractors()
+    first = patch_features(image)  # the default extractor, kept for the next call
+    kept = (patches_mod._default_onnx, onnx_backend._session, patches_mod._torch_extractor)
+    assert [c.cache_info().currsize for c in kept[:2]] == [1, 1]
+    patch_features(image, backend="torch")
+    assert kept[2].cache_info().currsize == 1
+    patches_mod.release_feature_extractors()
+    assert [c.cache_info().currsize for c in kept] == [0, 0, 0]
+    again = patch_features(image)
+    torch.testing.assert_close(again.features, first.features, atol=0, rtol=0)
+
+
 def test_crop_mode_matches_direct_computation(image, onnx_extractor):
     image = image[..., :60, :90]  # two patches per image
     grid = patch_grid(60, 90)

@@ -27,7 +27,6 @@ from __future__ import annotations
 import logging
 import os
 import socket
-import sys
 import time
 import warnings
 from collections.abc import Callable
@@ -37,6 +36,7 @@ from typing import Any
 
 from torchiid.baselines.retinex import retinex_decomposition
 from torchiid.collection.image_files import output_names, recorded, write_outputs
+from torchiid.collection.method import run_method
 from torchiid.collection.settings import (
     RETINEX_DEFAULTS,
     RunSettings,
@@ -45,7 +45,6 @@ from torchiid.collection.settings import (
 )
 from torchiid.collection.worker import SetupError, worker_state
 from torchiid.core.exceptions import (
-    ConvergenceWarning,
     ImageError,
     InputWarning,
     MemoryLimitError,
@@ -214,6 +213,7 @@ def process_image(
     decompose_fn: Callable[..., Any] = decompose,
     show_progress: bool = False,
     phash: str | None = None,
+    release_models: bool = False,
 ) -> ImageResult:
     """Decompose one image and put its files in place; never raises for a bad input.
 
@@ -224,6 +224,9 @@ def process_image(
             same signature); unused for ``method="retinex"``.
         show_progress: show an iteration bar (for the ``decompose`` process itself).
         phash: ``params_hash(settings)`` if already computed.
+        release_models: give back the CNN's memory once this image's Stage 0 is done
+            (:func:`~torchiid.features.patches.release_feature_extractors`), for a process
+            with no image left after this one.
 
     Returns:
         The :class:`ImageResult`: ``"done"`` with the files written (paths relative to the
@@ -270,8 +273,14 @@ def process_image(
         if settings.method == "retinex":
             decomposition = retinex_decomposition(batch, params, mask=mbatch, **RETINEX_DEFAULTS)
         else:
-            decomposition = _run_method(
-                decompose_fn, batch, mbatch, settings, params, stem, show_progress
+            decomposition = run_method(
+                decompose_fn,
+                batch,
+                mbatch,
+                settings,
+                stem,
+                show_progress=show_progress,
+                release_models=release_models,
             )
         seconds = time.perf_counter() - t0
         extra = {"input_sha256": result.sha256, "params_hash": phash}
@@ -411,38 +420,6 @@ def _finish(result, placed, settings, t0, decomposition, stem) -> None:
     )
     # the loader's note first, then the solvers' (one line each)
     result.note = "\n".join(n for n in (result.note, note) if n) or None
-
-
-def _run_method(decompose_fn, batch, mbatch, settings, params, stem, show_progress):
-    from tqdm import tqdm
-
-    it_bar = tqdm(
-        total=params.iterations,
-        desc=f"{stem}",
-        unit="it",
-        disable=not show_progress,
-        file=sys.stderr,
-        leave=False,
-    )
-
-    def progress(stage: str, k: int, total: int, _bar=it_bar) -> None:
-        if stage == "iteration":
-            _bar.update(1)
-
-    try:
-        with warnings.catch_warnings():
-            # a solve that hit its cap is reported in the image's one-line note and info.json
-            warnings.simplefilter("ignore", ConvergenceWarning)
-            return decompose_fn(
-                batch,
-                params,
-                mask=mbatch,
-                return_iterations=settings.save_iterations,
-                return_stage1=True,  # sigma.exr
-                progress=progress,
-            )
-    finally:
-        it_bar.close()
 
 
 def with_attempt(job: ImageJob, attempt: int) -> ImageJob:

@@ -141,6 +141,7 @@ def run_collection(
     decompose_fn: Callable | None = None,
     show_progress: bool = False,
     reporter: Reporter | None = None,
+    release_models: bool = False,
 ) -> RunSummary:
     """Decompose a collection into ``settings.out`` with a manifest (see the module notes).
 
@@ -157,6 +158,9 @@ def run_collection(
             for workers and Dask a picklable module-level function).
         show_progress: iteration bars of the images processed in this process.
         reporter: told of the plan and of every result.
+        release_models: in this process (``workers`` and ``scheduler`` ``None``), give back
+            the CNN's memory once the last image's Stage 0 is done, for a process that ends
+            with the run (the ``torchiid decompose`` command); a later run loads it again.
 
     Returns:
         The :class:`RunSummary`.
@@ -243,7 +247,9 @@ def run_collection(
         else:
             worker_state(settings)  # a set-up error stops the run before any image
             current: list[ImageJob] = []
-            results = _here(jobs, settings, decompose_fn, show_progress, phash, current)
+            results = _here(
+                jobs, settings, decompose_fn, show_progress, phash, current, release_models
+            )
             busy = lambda: list(current)  # noqa: E731
         for result in results:
             record(result)
@@ -303,10 +309,14 @@ def _here(
     show_progress: bool,
     phash: str,
     current: list[ImageJob],
+    release_models: bool = False,
 ) -> Iterator[ImageResult]:
     kwargs = {} if decompose_fn is None else {"decompose_fn": decompose_fn}
-    for job in jobs:
+    for i, job in enumerate(jobs):
         current[:] = [job]
-        result = process_image(job, settings, show_progress=show_progress, phash=phash, **kwargs)
+        last = release_models and i == len(jobs) - 1
+        result = process_image(
+            job, settings, show_progress=show_progress, phash=phash, release_models=last, **kwargs
+        )
         current[:] = []
         yield result

@@ -291,6 +291,7 @@ def run(args: argparse.Namespace) -> int:
             decompose_fn=decompose if (workers is None and scheduler is None) else None,
             show_progress=printer.show,
             reporter=printer,
+            release_models=True,  # the command ends with the run
         )
     except RunInterrupted as stop:
         printer.close()

@@ -17,6 +17,23 @@ from torchiid.edit.common import check_edit_numbers, check_layers, white_level
 __all__ = ["IlluminationColour", "illumination_colour", "light_weights"]
 
 
+def _distance_to_nearest_zero(mask: np.ndarray) -> np.ndarray:
+    """Exact Euclidean distance (float32, px) from each pixel of ``mask`` to its nearest 0.
+
+    OpenCV's exact transform runs without Intel IPP here: IPP's version of it returns some
+    distances one float32 step above the correctly rounded value, and which ones changes from
+    one call to the next, so the same shading would not always give the same weights.
+    OpenCV's own code gives the correctly rounded distance on every call, as fast.
+    ``cv2.ipp.setUseIPP`` applies to the calling thread only, so other threads keep IPP.
+    """
+    use_ipp = cv2.ipp.useIPP()
+    cv2.ipp.setUseIPP(False)
+    try:
+        return cv2.distanceTransform(mask, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    finally:
+        cv2.ipp.setUseIPP(use_ipp)
+
+
 def light_weights(
     shading: torch.Tensor, percentile: float = 0.95, radius: float = 0.35
 ) -> torch.Tensor:
@@ -24,7 +41,8 @@ def light_weights(
 
     The light regions are the pixels whose shading luminance is at least its ``percentile``
     quantile; a pixel at distance ``d`` from the nearest of them gets ``1 - smoothstep(d / r)``
-    with ``r = radius · longer side``, so pixels farther than ``r`` get exactly 0.
+    with ``r = radius · longer side``, so pixels farther than ``r`` get exactly 0. ``d`` is the
+    exact Euclidean distance, the same on every call for the same shading.
     """
     check_edit_numbers(shading, percentile=percentile, radius=radius)
     y = shading.mean(1, keepdim=True)
@@ -33,8 +51,7 @@ def light_weights(
     r = radius * max(shading.shape[-2:])
     out = np.empty(light.shape, np.float32)
     for b in range(light.shape[0]):
-        far = (~light[b, 0]).astype(np.uint8)
-        d = cv2.distanceTransform(far, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        d = _distance_to_nearest_zero((~light[b, 0]).astype(np.uint8))
         t = np.clip(d / r, 0, 1)
         out[b, 0] = 1 - t * t * (3 - 2 * t)
     return torch.from_numpy(out).to(shading)

@@ -30,6 +30,7 @@ from torchiid.features.patches import (
     PatchGrid,
     patch_features,
     patch_grid,
+    release_feature_extractors,
 )
 from torchiid.features.proposals import COLOUR_SPACES, Proposals, Strategy, selective_search
 from torchiid.features.roi import RoIAlign, roi_align
@@ -67,5 +68,6 @@ __all__ = [
     "patch_features",
     "patch_grid",
     "preprocess",
+    "release_feature_extractors",
     "roi_align",
 ]

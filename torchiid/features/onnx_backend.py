@@ -49,6 +49,7 @@ __all__ = [
     "ensure_onnx_model",
     "export_feature_extractor",
     "export_to_dir",
+    "release_sessions",
 ]
 
 logger = logging.getLogger(__name__)
@@ -238,6 +239,14 @@ def _session(path: str, sha: str, providers: tuple[str, ...], threads: int):
         return ort.InferenceSession(path, sess_options=options, providers=list(providers))
     except Exception as err:  # onnxruntime raises its own exception types
         raise ModelError(f"onnxruntime cannot load {path}: {err}") from err
+
+
+def release_sessions() -> None:
+    """Forget the onnxruntime sessions that :class:`OnnxFeatureExtractor` shares.
+
+    See :func:`~torchiid.features.patches.release_feature_extractors`.
+    """
+    _session.cache_clear()
 
 
 class OnnxFeatureExtractor:
