@@ -3,7 +3,9 @@
 The torch threads, the device, the shared ``--mask`` and the feature extractor's session are
 the same for every image of a run, so each process (the ``decompose`` process, a ``--workers``
 process, a Dask worker) sets them up on its first image. A process that cannot be set up
-raises :class:`SetupError`: not a fault of any image.
+raises :class:`SetupError`: not a fault of any image. The ``decompose`` process gives the
+session back once its last image's features are computed (``release_models`` of
+:func:`~.runner.run_collection`); a later run in that process loads it again.
 """
 
 from __future__ import annotations
