@@ -17,6 +17,8 @@ dinosaur+squirrel, frog1+teabag2).
         --grid '{"lambda_s": [0, 0.005, 0.01, 0.02], "t_e": [0, 0.0075, 0.015, 0.03]}'
     python tools/cv_mit.py ../shared/data/mit-berkeley --cache cv-cache --revert
     python tools/cv_mit.py ../shared/data/mit-berkeley --cache cv-cache --revert lambda_s=0
+    python tools/cv_mit.py ../shared/data/mit-berkeley --cache cv-cache --passes 1 --nested \\
+        --grid '{"lambda_m": [0.02, 0.01], "lambda_s": [0, 0.01], "t_e": [0.015, 0], ...}'
 
 ``--revert`` tests the preset's values that differ from the paper's (the ``paper`` preset's
 energy, and ``dark_level``/``clip_level``, which the paper does not have), each alone, all
@@ -25,6 +27,11 @@ value(s) set back to the paper's, and each fold chooses between them on its trai
 Rules: revert when ``B − A <= sd`` (standard deviation over the k folds of A's validation
 LMSE), ``<= se = sd / √k``, or ``<= se(B − A)`` (paired: the standard error over folds of the
 fold's mean difference, blind to how much harder some objects are); objects made worse too.
+
+``--nested`` cross-validates the whole tuning rule (:mod:`torchiid.eval.selection`): on each
+fold's training objects the grid is fitted, then every fitted value goes back to the paper's
+(:func:`references`) unless that worsens the training LMSE by more than ``se(B − A)`` over an
+inner split of those objects; what is left is scored on the fold's validation objects.
 
 Every ``(parameters, object)`` LMSE is computed once: the JSON-lines cache in ``--cache`` is
 keyed by the parameters (:func:`key_params`), the object, the input file, a fingerprint of its
@@ -66,6 +73,7 @@ from torchiid.eval.crossval import (
     reversion_test,
 )
 from torchiid.eval.datasets import DenseSample
+from torchiid.eval.selection import format_nested, nested_cross_validate
 from torchiid.io import load_image, load_mask
 from torchiid.model import decompose
 from torchiid.params import ADDED_SINCE, Parameters
@@ -103,6 +111,7 @@ PAPER_OFF = {"dark_level": 0.0, "clip_level": 0.0}
 #: sources that measure but take no part in a decomposition or its MIT score
 NOT_SCORED = (
     "torchiid/eval/crossval.py",
+    "torchiid/eval/selection.py",
     "torchiid/eval/texture.py",
     "torchiid/synthetic_texture.py",
 )
@@ -272,6 +281,31 @@ def revert_list(preset: str, given: list[str] | None) -> tuple[dict, dict]:
     return energy, solver
 
 
+def references(names) -> dict[str, Any]:
+    """The value each named parameter goes back to: the paper's, or the one that turns it off."""
+    paper = Parameters.preset("paper").to_dict()
+    return {n: PAPER_OFF.get(n, paper[n]) for n in names}
+
+
+def nested(score, names: list[str], grid: dict, start: dict, args, title: str) -> dict:
+    """Print (and return) the nested cross-validation of fitting ``grid`` and sending back."""
+    out = {}
+    ref = references(grid)
+    for k in [args.folds] + ([] if args.no_loo else [len(names)]):
+        res = nested_cross_validate(score, names, grid, ref, k, start=start, passes=args.passes)
+        split = "leave-one-out" if k == len(names) else f"{k}-fold"
+        print(format_nested(res, f"## {title}: fit, then send back, {split}"), "\n", flush=True)
+        per = ", ".join(f"{n} {v:.5f}" for n, v in res.cv.sample_scores.items())
+        print(f"validation LMSE per object: {per}\n", flush=True)
+        out[f"nested_{split}"] = {
+            **_cv_json(res.cv),
+            "selections": [vars(s) for s in res.selections],
+            "inner_k": res.inner_k,
+            "reference": ref,
+        }
+    return out
+
+
 def revert_tests(base: Parameters, energy: dict, solver: dict) -> dict[str, dict]:
     """Labelled changes: each value alone, then all energy values, then all caps together."""
     tests = {n: {n: v} for n, v in energy.items()}
@@ -369,6 +403,12 @@ def main() -> None:
         metavar="NAME=VALUE",
         help="reversion test of the tuned values (none given: all that differ)",
     )
+    ap.add_argument(
+        "--nested",
+        action="store_true",
+        help="cross-validate fitting the grid and then sending back to the paper's values "
+        "what does not earn its place (instead of the plain refit)",
+    )
     ap.add_argument("--input", default="diffuse", choices=("diffuse", "original"))
     ap.add_argument("--objects", help="comma-separated object names (default: all)")
     ap.add_argument("--natural", type=Path, help="MIT-Berkeley-Natural folder")
@@ -387,6 +427,8 @@ def main() -> None:
         grid = _json_arg(args.grid, "--grid")
         if not isinstance(grid, dict):
             raise SystemExit("--grid: expected a JSON object of lists")
+        if args.nested and not grid:
+            raise SystemExit("--nested needs a --grid of the values to fit")
         for name, values in grid.items():
             if not isinstance(values, list) or not values:
                 raise SystemExit(f"--grid: {name} must have a non-empty list of values")
@@ -427,7 +469,11 @@ def main() -> None:
         folds = kfold_splits(list(objects), args.folds)
         print(f"folds: {'; '.join(' '.join(v) for _, v in folds)}\n")
         start = {n: base.to_dict()[n] for n in grid}
-        rep = analyse(memo, list(objects), grid, start, args, title)
+        if args.nested:
+            rep = {"title": title, "objects": list(objects)}
+            rep.update(nested(memo, list(objects), grid, start, args, title))
+        else:
+            rep = analyse(memo, list(objects), grid, start, args, title)
         if energy or solver:
             tests = revert_tests(base, energy, solver)
             what = "values given" if args.revert else "back to the paper's values"

@@ -181,6 +181,26 @@ def test_a_bad_input_gets_a_message_and_the_page_stays_usable(
     expect(page.locator("#info")).to_contain_text("coffee.png: ")
 
 
+def test_a_failed_photo_takes_the_previous_one_s_results_off_the_page(page, browser_app, photos):
+    page.goto(browser_app.url)
+    _open(page, browser_app.url, photos["small"])
+    expect(page.locator("#layers-zip a")).to_be_visible(timeout=DECOMPOSE_TIMEOUT)
+    expect(page.locator("#compare img")).to_have_count(2, timeout=60_000)
+    _open(page, browser_app.url, photos["text"])
+    expect(page.locator(".toast-body.error").last).to_contain_text("notes.txt: is not an image")
+    info = page.locator("#info")
+    expect(info).to_contain_text("notes.txt could not be decomposed: notes.txt: is not an image")
+    # nothing of coffee.png is left: no layers, no slider, no zip, no error badges on them
+    for elem_id in ("photo", "reflectance", "shading", "compare"):
+        expect(page.locator(f"#{elem_id} img")).to_have_count(0)
+        expect(page.locator(f"#{elem_id}")).not_to_contain_text("Error")
+    expect(page.locator("#layers-zip a")).to_have_count(0)
+    assert "coffee.png" not in info.inner_text()
+    _open(page, browser_app.url, photos["small"])
+    expect(page.locator("#layers-zip a")).to_be_visible(timeout=DECOMPOSE_TIMEOUT)
+    expect(info).to_contain_text("coffee.png: ")
+
+
 def test_two_tabs_at_once_each_get_their_own_photo(context, browser_app, photos):
     tabs = [context.new_page(), context.new_page()]
     for tab in tabs:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import zipfile
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -13,6 +14,7 @@ gr = pytest.importorskip("gradio")
 
 import torchiid.app.callbacks as callbacks  # noqa: E402
 from torchiid.app.callbacks import (  # noqa: E402
+    CLEARED,
     COMPARE,
     EDIT_FIELDS,
     Callbacks,
@@ -173,6 +175,53 @@ def test_the_same_file_with_the_same_settings_is_not_decomposed_again(calls, pho
     assert all((a == b).all() for a, b in zip(again[1:4], first[1:4], strict=True))
     other = calls.decompose(str(photos["small"]), "default", 2, 512, first[0])
     assert len(runs) == 1 and other[0] is not first[0] and "2 alternations" in other[4]
+
+
+class _Tab:
+    """What Gradio passes as ``gr.Request``: the tab's session hash is all the callbacks read."""
+
+    def __init__(self, session_hash: str) -> None:
+        self.session_hash = session_hash
+
+
+def test_a_failed_photo_clears_the_page_and_says_why_in_it(calls, photos):
+    first = calls.decompose(str(photos["small"]), "default", 1, 512, request=_Tab("a"))[0]
+    folder = calls._downloads(first)
+    zip_path = calls.layers_zip(first)
+    with pytest.raises(gr.Error) as err:
+        calls.decompose(str(photos["text"]), "default", 1, 512, first, request=_Tab("a"))
+    # the previous photo stays whole until the page takes the failure (an API call keeps it)
+    assert folder.is_dir() and first.cache["folder"] == folder
+    other_tab = calls.failed(None, str(photos["text"]), request=_Tab("b"))
+    assert other_tab[CLEARED.index("info")] == "**notes.txt** could not be decomposed."
+    out = calls.failed(first, str(photos["text"]), request=_Tab("a"))
+    assert len(out) == len(CLEARED)
+    shown = dict(zip(CLEARED, out, strict=True))
+    assert shown["info"] == f"**notes.txt** could not be decomposed: {err.value.message}"
+    assert err.value.message.startswith("notes.txt: is not an image")
+    for name in ("session", "photo", "reflectance", "shading", "compare_view", "layers_file"):
+        assert shown[name] is None, name
+    assert shown["edited_file"] is None and shown["selection"] is None and shown["gallery"] == []
+    assert shown["size"]["value"] == 0 and "Open a photo" in shown["status"]
+    assert not folder.exists() and not Path(zip_path).exists()  # its downloads removed
+    # the message is shown once: a later failure without one says only that it failed
+    assert calls.failed(None, None, request=_Tab("a"))[4] == "The photo could not be decomposed."
+
+
+def test_a_new_photo_replaces_the_previous_one_s_files_once_it_is_open(calls, photos):
+    first = calls.decompose(str(photos["small"]), "default", 1, 512)[0]
+    folder = calls._downloads(first)
+    second = calls.decompose(str(photos["chelsea"]), "default", 1, 512, first)[0]
+    assert second is not first and not folder.exists()
+    forget(second)
+
+
+def test_failure_messages_kept_for_tabs_that_never_show_them_are_bounded(calls, photos):
+    for i in range(callbacks._FAILURES_KEPT + 5):
+        with pytest.raises(gr.Error):
+            calls.decompose(None, "default", 1, 512, request=_Tab(f"tab{i}"))
+    assert len(calls._failures) == callbacks._FAILURES_KEPT
+    assert "tab0" not in calls._failures and f"tab{callbacks._FAILURES_KEPT + 4}" in calls._failures
 
 
 def test_clearing_the_selection_puts_the_size_slider_back(calls, chelsea_session):

@@ -129,3 +129,42 @@ def test_natural_folders_take_missing_ground_truth_from_the_laboratory_folder(to
     assert natural["phone"][1] == lab["phone"][1]  # the same files, the same fingerprint
     with pytest.raises(SystemExit, match="no reflectance.png"):
         tool.load_objects(tmp_path, "diffuse")
+
+
+def test_references_are_the_papers_values_or_off(tool):
+    ref = tool.references(["t_e", "base_mix", "lambda_m", "dark_level", "clip_level"])
+    paper = Parameters.preset("paper").to_dict()
+    assert ref == {
+        "t_e": paper["t_e"],
+        "base_mix": paper["base_mix"],
+        "lambda_m": paper["lambda_m"],
+        "dark_level": 0.0,
+        "clip_level": 0.0,
+    }
+    assert ref["t_e"] != Parameters().to_dict()["t_e"]  # the default's is tuned, not the paper's
+
+
+def test_nested_prints_the_folds_and_what_went_back(tool, capsys):
+    import argparse
+
+    names = ["a", "b", "c", "d", "e", "f"]
+    base = {n: 0.01 * (1 + i) for i, n in enumerate(names)}
+
+    def score(changes, sample):  # t_e helps a and b a lot, hurts the rest a little
+        if changes.get("t_e", 0.0) == 0.0:
+            return base[sample]
+        return base[sample] - (0.004 if sample in "ab" else -0.0005)
+
+    args = argparse.Namespace(folds=3, no_loo=False, passes=1)
+    out = tool.nested(score, names, {"t_e": [0.015, 0.0]}, {"t_e": 0.015}, args, "lab")
+    text = capsys.readouterr().out
+    assert "## lab: fit, then send back, 3-fold" in text
+    assert "## lab: fit, then send back, leave-one-out" in text
+    assert set(out) == {"nested_3-fold", "nested_leave-one-out"}
+    three = out["nested_3-fold"]
+    assert three["inner_k"] == 2 and three["reference"] == {"t_e": 0.0}
+    # folds 1 and 2 train on one of a, b: t_e's gain there is uneven over the inner folds
+    # and goes back; fold 3 trains on both, where the gain is the same in each inner fold
+    sent_back = [sel["reverted"] for sel in three["selections"]]
+    assert sent_back == [("t_e",), ("t_e",), ()]
+    assert [f["changes"] for f in three["folds"]] == [{"t_e": 0.0}, {"t_e": 0.0}, {"t_e": 0.015}]

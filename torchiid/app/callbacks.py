@@ -30,6 +30,7 @@ from torchiid.core.exceptions import TorchiidError, one_line
 from torchiid.params import Parameters
 
 __all__ = [
+    "CLEARED",
     "COMPARE",
     "EDIT_FIELDS",
     "Callbacks",
@@ -102,6 +103,30 @@ def _user_errors(fn: Callable) -> Callable:
     return wrapper
 
 
+#: the outputs :meth:`Callbacks.failed` empties, in its order
+CLEARED = (
+    "session",
+    "photo",
+    "reflectance",
+    "shading",
+    "info",
+    "compare_view",
+    "layers_file",
+    "edited_file",
+    "gallery",
+    "selection",
+    "size",
+    "status",
+)
+#: failure messages kept for tabs that have not shown them (an API client shows none)
+_FAILURES_KEPT = 64
+
+
+def _tab(request: gr.Request | None) -> str:
+    """The browser tab a call came from (Gradio's session hash), or ``""`` without one."""
+    return str(getattr(request, "session_hash", None) or "")
+
+
 def _no_photo() -> gr.Error:
     return gr.Error("open a photo first", duration=5, print_exception=False)
 
@@ -144,8 +169,9 @@ class Callbacks:
     def __init__(self, config: AppConfig, folder: ServerFolder) -> None:
         self.config = config
         self.folder = folder
+        #: the last failed decomposition's message, per tab, until :meth:`failed` shows it
+        self._failures: dict[str, str] = {}
 
-    @_user_errors
     def decompose(
         self,
         photo: str | None,
@@ -153,9 +179,36 @@ class Callbacks:
         iterations: float,
         max_side: float,
         previous: Session | None = None,
+        request: gr.Request | None = None,
         progress: Any = gr.Progress(),  # noqa: B008 - Gradio's way of asking for a progress bar
     ) -> tuple[Session, np.ndarray, np.ndarray, np.ndarray, str]:
-        """Read and decompose the photo: the session, photo, reflectance, shading and info."""
+        """Read and decompose the photo: the session, photo, reflectance, shading and info.
+
+        The previous photo's session is forgotten once the new one is open. When the photo
+        cannot be decomposed, the error's message is kept for :meth:`failed` (which the page
+        calls next) and raised to the page.
+        """
+        try:
+            out = self._decompose(photo, preset, iterations, max_side, previous, progress)
+        except gr.Error as err:
+            self._failures[_tab(request)] = err.message
+            while len(self._failures) > _FAILURES_KEPT:  # tabs whose failure was never shown
+                self._failures.pop(next(iter(self._failures)))
+            raise
+        if out[0] is not previous:
+            forget(previous)
+        return out
+
+    @_user_errors
+    def _decompose(
+        self,
+        photo: str | None,
+        preset: str,
+        iterations: float,
+        max_side: float,
+        previous: Session | None,
+        progress: Any,
+    ) -> tuple[Session, np.ndarray, np.ndarray, np.ndarray, str]:
         if not photo:
             raise gr.Error("choose a photo file first", duration=5, print_exception=False)
         params = Parameters.preset(preset or "default").replace(
@@ -166,7 +219,6 @@ class Callbacks:
             # the same file with the same settings (Decompose pressed while its upload was
             # being decomposed): the result would be the same, so it is not computed again
             return (previous, *self._views(previous))
-        forget(previous)
 
         def report(fraction: float, message: str) -> None:
             progress(fraction, desc=message)
@@ -181,6 +233,24 @@ class Callbacks:
         )
         session.cache["source"] = source
         return (session, *self._views(session))
+
+    def failed(
+        self, previous: Session | None, photo: str | None, request: gr.Request | None = None
+    ) -> tuple[Any, ...]:
+        """After a decomposition failed: no photo open, every output empty, why in the page.
+
+        The outputs of :data:`CLEARED`: the previous photo's session (its files removed), its
+        layers, slider, downloads, gallery and selection give way, so that nothing on the page
+        belongs to a photo other than the file chosen; the run info names that file and
+        repeats the error's message, which stays after its pop-up is closed.
+        """
+        forget(previous)
+        text = self._failures.pop(_tab(request), None)
+        name = f"**{Path(photo).name}**" if photo else "The photo"
+        info = f"{name} could not be decomposed" + (f": {text}" if text else ".")
+        size = gr.update(value=0, maximum=1)
+        status = "Open a photo, then click an object in it."
+        return None, None, None, None, info, None, None, None, [], None, size, status
 
     @staticmethod
     def _views(session: Session) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:

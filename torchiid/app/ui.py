@@ -176,7 +176,10 @@ def build_app(config: AppConfig, folder: ServerFolder) -> gr.Blocks:
         uploaded = photo_file.upload(
             calls.decompose, decompose_in, decompose_out, **_PRIVATE, **_HEAVY
         )
+        cleared = [session, photo, reflectance, shading, info, compare_view, layers_file]
+        cleared += [edited_file, gallery, selection, size, status]  # in CLEARED's order
         for event, api in ((clicked, {"api_name": "layers"}), (uploaded, _PRIVATE)):
+            event.failure(calls.failed, [session, photo_file], cleared, **_PRIVATE)
             event.success(
                 calls.details, [session], [gallery, selection, size, status], **_PRIVATE
             ).success(calls.preview, preview_in, [compare_view], **_PRIVATE).success(
