@@ -291,7 +291,7 @@ def nested(score, names: list[str], grid: dict, start: dict, args, title: str) -
     """Print (and return) the nested cross-validation of fitting ``grid`` and sending back."""
     out = {}
     ref = references(grid)
-    for k in [args.folds] + ([] if args.no_loo else [len(names)]):
+    for k in sorted({args.folds} | (set() if args.no_loo else {len(names)})):
         res = nested_cross_validate(score, names, grid, ref, k, start=start, passes=args.passes)
         split = "leave-one-out" if k == len(names) else f"{k}-fold"
         print(format_nested(res, f"## {title}: fit, then send back, {split}"), "\n", flush=True)

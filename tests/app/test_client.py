@@ -27,6 +27,13 @@ def test_the_decompose_endpoint_then_a_stop_that_leaves_no_temporary_file(
         decompose = next(name for name in endpoints if "decompose" in name)
         params = endpoints[decompose]["parameters"]
         assert params[0]["component"] == "File"  # the photo comes first
+        returns = [(r["label"], r["component"]) for r in endpoints[decompose]["returns"]]
+        assert returns[1:] == [
+            ("Reflectance", "Image"),
+            ("Shading", "Image"),
+            ("Run info", "Markdown"),
+        ]
+        assert returns[0][0].startswith("Photo")  # every output has a name, none "value_N"
 
         photo, refl, shading, info = client.predict(
             handle_file(str(photos["chelsea"])), "default", 1, 512, api_name=decompose

@@ -65,6 +65,61 @@ def test_one_value_goes_back_at_a_time_and_the_rest_is_tested_again():
     assert sel.reverted == ("x", "y") and sel.changes == {"x": 0, "y": 0}
 
 
+#: per inner fold (sample index mod 5): an effect that lowers some folds and raises others
+SWING = [1, -1, 1, -1, 0]
+
+
+def effects(table):
+    """A score from ``(x, y) -> (mean effect, swing)``: each sample gets mean + swing·SWING."""
+
+    def score(c, s):
+        mean, swing = table[(c.get("x", 0), c.get("y", 0))]
+        return BASE[s] + mean + swing * SWING[MIT.index(s) % 5]
+
+    return score
+
+
+def test_the_spread_is_the_standard_error_not_the_standard_deviation():
+    # sending x back worsens the mean by 0.0006; the fold differences' sd is 0.001, their
+    # standard error 0.001/sqrt(5) = 0.00045: x stays (by the sd it would go back)
+    score = effects({(1, 0): (0.0, 0.0), (0, 0): (0.0006, 0.001)})
+    sel = select_values(score, MIT, {"x": [1, 0]}, {"x": 0}, inner_k=5, start={"x": 1})
+    assert sel.fitted == {"x": 1} and sel.reverted == () and sel.changes == {"x": 1}
+
+
+def test_a_value_that_changes_nothing_goes_back():
+    sel = select_values(effects({(1, 0): (0.0, 0.0), (0, 0): (0.0, 0.0)}), MIT, {"x": [1, 0]},
+                        {"x": 0}, inner_k=5, start={"x": 1})  # fmt: skip
+    assert sel.fitted == {"x": 1} and sel.reverted == ("x",) and sel.changes == {"x": 0}
+
+
+def test_the_value_furthest_below_its_spread_goes_back_first_and_alone():
+    # both qualify at first (margins −0.00035 for x, −0.00025 for y); once x is back, sending
+    # y back too worsens every fold by 0.001: y stays. Sending y first, or both at once, ends
+    # elsewhere
+    score = effects(
+        {
+            (1, 1): (0.0, 0.0),
+            (0, 1): (0.0001, 0.001),
+            (1, 0): (0.0002, 0.001),
+            (0, 0): (0.0011, 0.001),
+        }
+    )
+    grid, ref = {"x": [1, 0], "y": [1, 0]}, {"x": 0, "y": 0}
+    sel = select_values(score, MIT, grid, ref, inner_k=5, start={"x": 1, "y": 1})
+    assert sel.fitted == {"x": 1, "y": 1}
+    assert sel.reverted == ("x",) and sel.changes == {"x": 0, "y": 1}
+    # the grid's order does not decide it
+    sel = select_values(score, MIT, {"y": [1, 0], "x": [1, 0]}, ref, 5, {"x": 1, "y": 1})
+    assert sel.reverted == ("x",)
+
+
+def test_a_reference_that_equals_nothing_still_ends():
+    nan = float("nan")
+    sel = select_values(lambda c, s: BASE[s], MIT, {"x": [1]}, {"x": nan}, 5, {"x": 1})
+    assert sel.reverted == ("x",)  # it changes nothing: sent back once, then left
+
+
 def test_grid_values_without_a_reference_are_fitted_and_never_sent_back():
     def score(c, s):
         return BASE[s] + 0.01 * (c.get("z", 0) - 2) ** 2 * (1 + MIT.index(s) % 3)
@@ -106,6 +161,8 @@ def test_leave_one_out_has_leave_one_out_inside_and_bad_k_fails():
         nested_cross_validate(lambda c, s: 0.0, MIT, {"x": [0]}, {"x": 0}, k=5, inner_k=9)
     with pytest.raises(ParameterError, match="inner_k"):
         select_values(lambda c, s: 0.0, ["a", "b"], {"x": [0]}, {"x": 0}, inner_k=3)
+    with pytest.raises(ParameterError, match="1 training sample is too few"):
+        nested_cross_validate(lambda c, s: 0.0, ["a", "b"], {"x": [0]}, {"x": 0}, k=2)
 
 
 def test_format_nested_names_what_was_fitted_and_sent_back():

@@ -13,6 +13,7 @@ from __future__ import annotations
 import functools
 import logging
 import shutil
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -171,6 +172,7 @@ class Callbacks:
         self.folder = folder
         #: the last failed decomposition's message, per tab, until :meth:`failed` shows it
         self._failures: dict[str, str] = {}
+        self._failures_lock = threading.Lock()  # decompose and failed run on Gradio's threads
 
     def decompose(
         self,
@@ -191,9 +193,10 @@ class Callbacks:
         try:
             out = self._decompose(photo, preset, iterations, max_side, previous, progress)
         except gr.Error as err:
-            self._failures[_tab(request)] = err.message
-            while len(self._failures) > _FAILURES_KEPT:  # tabs whose failure was never shown
-                self._failures.pop(next(iter(self._failures)))
+            with self._failures_lock:
+                self._failures[_tab(request)] = err.message
+                while len(self._failures) > _FAILURES_KEPT:  # tabs that never showed theirs
+                    self._failures.pop(next(iter(self._failures)))
             raise
         if out[0] is not previous:
             forget(previous)
@@ -245,7 +248,8 @@ class Callbacks:
         repeats the error's message, which stays after its pop-up is closed.
         """
         forget(previous)
-        text = self._failures.pop(_tab(request), None)
+        with self._failures_lock:
+            text = self._failures.pop(_tab(request), None)
         name = f"**{Path(photo).name}**" if photo else "The photo"
         info = f"{name} could not be decomposed" + (f": {text}" if text else ".")
         size = gr.update(value=0, maximum=1)

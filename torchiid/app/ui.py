@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import gradio as gr
 
-from torchiid.app.callbacks import COMPARE, EDIT_FIELDS, Callbacks, forget
+from torchiid.app.callbacks import CLEARED, COMPARE, EDIT_FIELDS, Callbacks, forget
 from torchiid.app.config import AppConfig
 from torchiid.app.edits import EditSettings
 from torchiid.app.files import ServerFolder
@@ -164,7 +164,7 @@ def build_app(config: AppConfig, folder: ServerFolder) -> gr.Blocks:
         with gr.Accordion("Every alternation's layers", open=False):
             gallery = gr.Gallery(columns=4, format="png", elem_id="iterations-gallery")
         with gr.Accordion("Run info", open=True):
-            info = gr.Markdown(elem_id="info")
+            info = gr.Markdown(label="Run info", elem_id="info")  # its name in the API
 
         values = list(controls.values())
         preview_in = [session, selection, compare, *values]
@@ -176,8 +176,21 @@ def build_app(config: AppConfig, folder: ServerFolder) -> gr.Blocks:
         uploaded = photo_file.upload(
             calls.decompose, decompose_in, decompose_out, **_PRIVATE, **_HEAVY
         )
-        cleared = [session, photo, reflectance, shading, info, compare_view, layers_file]
-        cleared += [edited_file, gallery, selection, size, status]  # in CLEARED's order
+        outputs = {
+            "session": session,
+            "photo": photo,
+            "reflectance": reflectance,
+            "shading": shading,
+            "info": info,
+            "compare_view": compare_view,
+            "layers_file": layers_file,
+            "edited_file": edited_file,
+            "gallery": gallery,
+            "selection": selection,
+            "size": size,
+            "status": status,
+        }
+        cleared = [outputs[name] for name in CLEARED]
         for event, api in ((clicked, {"api_name": "layers"}), (uploaded, _PRIVATE)):
             event.failure(calls.failed, [session, photo_file], cleared, **_PRIVATE)
             event.success(

@@ -1,10 +1,10 @@
-"""Nested cross-validation of a whole tuning rule: fit, then send back what earns no place.
+"""Nested cross-validation of a tuning rule: fit, then send back what earns no place.
 
 :func:`~torchiid.eval.crossval.cross_validate` refits a grid on each fold's training samples
 and scores the fit on the fold's validation samples: it estimates what *fitting* the values
-gives on unseen samples. A preset's values are chosen by a longer rule, and the estimate that
-counts for a preset is the one of that whole rule, run where the validation samples take no
-part (nested cross-validation):
+gives on unseen samples. A preset's values that depart from the paper are tested by a longer
+rule, and this module runs that rule where a fold's validation samples take no part (nested
+cross-validation):
 
 1. **Fit** (:func:`~torchiid.eval.crossval.coordinate_search`): on the training samples each
    grid parameter in turn takes the candidate with the lowest mean score.
@@ -12,14 +12,20 @@ part (nested cross-validation):
    paper's value, or the value that turns an addition off) goes back to the reference unless
    that worsens the mean training score by more than the standard error, over an inner split
    of the training samples into folds, of the paired difference (``se(B − A)``). One value goes
-   back at a time, the one whose worsening lies furthest below its spread, and the test runs
-   again on what is left until nothing more goes back.
+   back at a time, the one whose worsening lies furthest below its spread (on a tie, the first
+   in the grid's order), and the test runs again on what is left until nothing more goes back;
+   a value that changes nothing (no worsening, no spread) goes back.
 
 :func:`select_values` is the rule on one set of samples; :func:`nested_cross_validate` runs it
 on each outer fold's training samples (its inner folds split those samples alone, as
 :func:`~torchiid.eval.crossval.kfold_splits` does) and scores the result on the fold's
-validation samples. Scores are cached as in :mod:`torchiid.eval.crossval`: a score function
-is called once per distinct ``(changes, sample)``.
+validation samples. What the validation samples take no part in is this rule; the grid's
+candidates and the ``start`` it searches from are the caller's, and were they chosen on all
+the samples (as a preset's tuned values were), the estimate does not undo that choice. When
+every fold ends at the same values, the mean training and validation scores are equal by
+construction (each sample is in ``k − 1`` training sets), so the gap says nothing then; the
+news is that the folds agree. Scores are cached as in :mod:`torchiid.eval.crossval`: a score
+function is called once per distinct ``(changes, sample)``.
 """
 
 from __future__ import annotations
@@ -107,13 +113,15 @@ def select_values(
     while True:
         best: tuple[float, str] | None = None
         for name in grid:
-            if name not in reference or name not in current or current[name] == reference[name]:
+            if name not in reference or name not in current or name in reverted:
+                continue
+            if current[name] == reference[name]:
                 continue
             back = {**current, name: reference[name]}
             diffs = [_mean(memo, back, v) - _mean(memo, current, v) for v in inner]
             delta = _mean(memo, back, samples) - _mean(memo, current, samples)
             margin = delta - _paired_se(diffs)
-            if margin <= 0 and (best is None or margin < best[0]):
+            if margin <= 0 and (best is None or margin < best[0]):  # a tie: the grid's order
                 best = (margin, name)
         if best is None:
             break
@@ -157,6 +165,8 @@ def nested_cross_validate(
     memo = memoised(score)
     splits = kfold_splits(samples, k)
     n_train = min(len(train) for train, _ in splits)
+    if n_train < 2:
+        raise ParameterError(f"a fold's {n_train} training sample is too few for inner folds")
     inner = min(k - 1, n_train) if inner_k is None else inner_k
     if not 2 <= inner <= n_train:
         raise ParameterError(f"inner_k must be from 2 to {n_train}, got {inner!r}")
