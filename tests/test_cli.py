@@ -121,6 +121,58 @@ def test_static_tools_see_every_public_name():
     assert listed and listed == typed == set(torchiid.__all__)
 
 
+LAZY_PACKAGES = ("torchiid.core", "torchiid.io", "torchiid.collection")
+
+
+@pytest.mark.parametrize("name", LAZY_PACKAGES)
+def test_lazy_packages_resolve_every_name_and_show_them_to_static_tools(name):
+    """Each name of ``__all__`` loads, has a source, and is imported under TYPE_CHECKING."""
+    package = importlib.import_module(name)
+    assert set(package._SOURCES) == set(package.__all__)
+    for public in package.__all__:
+        value = getattr(package, public)
+        assert getattr(importlib.import_module(package._SOURCES[public]), public) is value
+    assert set(package.__all__) <= set(dir(package))
+    with pytest.raises(AttributeError, match="has no attribute 'nothing_here'"):
+        package.nothing_here  # noqa: B018
+    path = ROOT / Path(*name.split(".")) / "__init__.py"
+    tree = ast.parse(path.read_text())
+    typed = {
+        a.asname or a.name
+        for node in tree.body
+        if isinstance(node, ast.If) and getattr(node.test, "id", "") == "TYPE_CHECKING"
+        for i in node.body
+        for a in i.names
+    }
+    assert typed == set(package.__all__)
+
+
+def test_a_rerun_that_finds_every_input_done_loads_no_model(tmp_path):
+    """Planning from the manifest needs no torch: a done folder is skipped at once."""
+    photo = tmp_path / "cat.png"
+    cv2.imwrite(str(photo), cv2.resize(data.chelsea(), (96, 72))[..., ::-1])
+    argv = ["decompose", str(photo), "-o", str(tmp_path / "out"), "--iterations", "1"]
+    assert main([*argv, "--no-progress", "-q"]) == 0
+    code = f"""
+import sys
+from torchiid.cli import main
+assert main({[*argv, "--no-progress"]!r}) == 0
+loaded = [m for m in {HEAVY!r} if m in sys.modules]
+assert not loaded, loaded
+print("ok")
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip().endswith("ok")
+    assert "0 done, 1 skipped, 0 failed" in done.stderr
+    # a new input in the same folder is decomposed as before (the model loads then)
+    other = tmp_path / "cat2.png"
+    other.write_bytes(photo.read_bytes())
+    argv[1:2] = [str(photo), str(other)]
+    assert main([*argv, "--no-progress", "-q"]) == 0
+    assert (tmp_path / "out" / "cat2-reflectance.png").is_file()
+
+
 def test_choices_named_for_help_are_the_library_s():
     from torchiid import edit
     from torchiid.commands import edit as edit_command

@@ -3,7 +3,7 @@ import torch
 
 from torchiid.core.exceptions import ParameterError
 from torchiid.params import Parameters
-from torchiid.priors.texture import detexture, texture_confidence
+from torchiid.priors.texture import REMOVAL_SIGMA, detexture, texture_confidence
 from torchiid.synthetic_texture import smooth_light, textured_plane
 
 TEXTURE_T_X = Parameters.preset("texture").shading.t_x
@@ -52,6 +52,11 @@ def test_bad_deviation_fails_clearly():
         texture_confidence(torch.rand(1, 3, 16, 16), 0.0)
     with pytest.raises(ParameterError, match="parameter t_x must be >= 0"):
         Parameters().replace(t_x=-1.0)
+
+
+def test_the_parameter_default_is_the_prior_s_removal_scale():
+    # the parameters keep their own literal so that they import without torch
+    assert Parameters().shading.t_x_sigma == REMOVAL_SIGMA
 
 
 def test_t_x_is_off_by_default_and_reaches_the_shading_group():

@@ -30,13 +30,14 @@ import socket
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from torchiid.baselines.retinex import retinex_decomposition
 from torchiid.collection.image_files import output_names, recorded, write_outputs
 from torchiid.collection.method import run_method
+from torchiid.collection.records import ImageJob, ImageResult, InterruptedAfterCommit
 from torchiid.collection.settings import (
     RETINEX_DEFAULTS,
     RunSettings,
@@ -56,7 +57,6 @@ from torchiid.core.exceptions import (
 )
 from torchiid.io import load_image, load_mask
 from torchiid.io.decode import declared_size
-from torchiid.io.inputs import KeyParts
 from torchiid.io.layers import OutputError, OutputSet
 from torchiid.model import check_memory, decompose
 
@@ -77,66 +77,6 @@ __all__ = [
 ]
 
 log = logging.getLogger("torchiid")
-
-
-@dataclass(frozen=True)
-class ImageJob(KeyParts):
-    """One image to process: where it is, where its outputs go, which attempt this is.
-
-    Its output key's :attr:`stem` (the prefix of its file names) and :attr:`folder` (the
-    output subfolder, ``""`` for the output folder itself) are properties.
-    """
-
-    index: int
-    path: str
-    key: str
-    mask: str | None = None
-    attempt: int = 1
-
-
-@dataclass
-class ImageResult:
-    """What became of one image (one line of the manifest, see :mod:`.manifest`)."""
-
-    index: int
-    key: str
-    path: str
-    status: str  # "done" or "failed"
-    message: str | None = None
-    files: list[str] = field(default_factory=list)
-    seconds: float = 0.0
-    sha256: str | None = None
-    size: int | None = None
-    mtime_ns: int | None = None
-    mask_sha256: str | None = None
-    attempts: int = 1
-    worker: str = ""
-    recovered: bool = False
-    note: str | None = None  # shown unless -q
-    detail: str | None = None  # shown with -v
-    failure: str | None = None  # "input", "output", "error" or "worker" (see process_image)
-
-    @property
-    def retryable(self) -> bool:
-        """A failure that is not the input's nor the output folder's (Dask retries it)."""
-        return self.failure == "error"
-
-    @property
-    def ok(self) -> bool:
-        """The image's files are complete."""
-        return self.status == "done"
-
-
-class InterruptedAfterCommit(KeyboardInterrupt):  # noqa: N818 - it is an interrupt
-    """An interrupt that arrived while the image's files were put in place: they are complete.
-
-    Attributes:
-        result: the image's (done) result, to be recorded before the run stops.
-    """
-
-    def __init__(self, result: ImageResult) -> None:
-        super().__init__("interrupted after the files were put in place")
-        self.result = result
 
 
 def error_message(path: str | os.PathLike, exc: BaseException) -> str:

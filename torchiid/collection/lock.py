@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from torchiid.core.exceptions import TorchiidError
-from torchiid.io.layers import make_folders, remove_empty_folders
+from torchiid.io.output_set import make_folders, remove_empty_folders
 
 __all__ = ["LOCK_NAME", "FolderBusyError", "OutputLock"]
 

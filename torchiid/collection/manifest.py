@@ -51,7 +51,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from torchiid._version import __version__
-from torchiid.collection.job import ImageJob, ImageResult
+from torchiid.collection.records import ImageJob, ImageResult
 from torchiid.collection.settings import file_sha256
 from torchiid.io.inputs import InputItem
 

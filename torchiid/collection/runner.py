@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
-from torchiid.collection.job import ImageJob, ImageResult, InterruptedAfterCommit, process_image
 from torchiid.collection.lock import OutputLock
 from torchiid.collection.manifest import (
     MANIFEST_NAME,
@@ -33,6 +32,7 @@ from torchiid.collection.manifest import (
     plan,
     record_of,
 )
+from torchiid.collection.records import ImageJob, ImageResult, InterruptedAfterCommit
 from torchiid.collection.settings import RunSettings, params_hash
 from torchiid.collection.worker import SetupError, worker_state
 from torchiid.io.inputs import InputItem
@@ -154,8 +154,9 @@ def run_collection(
             task raises an unexpected error).
         retry_failed: run again the inputs that failed before.
         redo: ignore the manifest: run every input (existing files still need ``overwrite``).
-        decompose_fn: the decomposition function (default :func:`torchiid.model.decompose`;
-            for workers and Dask a picklable module-level function).
+        decompose_fn: the decomposition function (default :func:`torchiid.model.decompose`,
+            looked up once there is an image to decompose in this process; for workers and
+            Dask a picklable module-level function).
         show_progress: iteration bars of the images processed in this process.
         reporter: told of the plan and of every result.
         release_models: in this process (``workers`` and ``scheduler`` ``None``), give back
@@ -311,7 +312,11 @@ def _here(
     current: list[ImageJob],
     release_models: bool = False,
 ) -> Iterator[ImageResult]:
-    kwargs = {} if decompose_fn is None else {"decompose_fn": decompose_fn}
+    from torchiid import model  # the model: only when there is work
+    from torchiid.collection.job import process_image
+
+    # looked up now, not when the job module was imported: a caller may have replaced it
+    kwargs = {"decompose_fn": model.decompose if decompose_fn is None else decompose_fn}
     for i, job in enumerate(jobs):
         current[:] = [job]
         last = release_models and i == len(jobs) - 1

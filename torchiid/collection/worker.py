@@ -16,7 +16,6 @@ from typing import Any
 
 from torchiid.collection.settings import RunSettings
 from torchiid.core.exceptions import TorchiidError, describe_error
-from torchiid.io import load_mask
 
 __all__ = ["SetupError", "WorkerState", "worker_state"]
 
@@ -74,6 +73,7 @@ def _new_state(settings: RunSettings) -> WorkerState:
 
     from torchiid.core.device import resolve_device
     from torchiid.core.memory import undo_malloc_trim_threshold
+    from torchiid.io import load_mask
 
     undo_malloc_trim_threshold()  # Dask's nanny sets MALLOC_TRIM_THRESHOLD_: every tensor mmapped
     if settings.threads:

@@ -217,10 +217,11 @@ class _Printer:
 
 def _settings(args: argparse.Namespace, params: Parameters, out: Path) -> RunSettings:
     from torchiid.collection import RunSettings, file_sha256
-    from torchiid.io import load_mask
 
     mask_sha = None
     if args.mask is not None:
+        from torchiid.io import load_mask
+
         load_mask(args.mask)  # a missing, unreadable or empty mask is a set-up error
         mask_sha = file_sha256(args.mask)
     # an option a caller's namespace lacks keeps the field's default
@@ -243,14 +244,15 @@ def run(args: argparse.Namespace) -> int:
     their files).
     """
     from torchiid.collection import RunInterrupted, run_collection
-    from torchiid.core.device import resolve_device
     from torchiid.core.exceptions import TorchiidError
     from torchiid.io.inputs import list_inputs, unique_keys
-    from torchiid.io.layers import check_output_folder
-    from torchiid.model import decompose
+    from torchiid.io.output_set import check_output_folder
 
     params = params_from_args(args)
-    device = resolve_device(args.device)
+    if args.device not in ("auto", "cpu"):  # a device asked for by name is checked now
+        from torchiid.core.device import resolve_device
+
+        resolve_device(args.device)
     workers = getattr(args, "workers", None)
     scheduler = getattr(args, "dask_scheduler", None)
     retries = getattr(args, "retries", 1)
@@ -276,8 +278,6 @@ def run(args: argparse.Namespace) -> int:
         if args.mask is not None:
             absolute["mask"] = Path(os.path.abspath(args.mask))
         settings = dataclasses.replace(settings, **absolute)
-    if scheduler is None and workers is None:
-        settings = dataclasses.replace(settings, device=str(device))
     printer = _Printer(args, args.output)
     try:
         summary = run_collection(
@@ -288,7 +288,6 @@ def run(args: argparse.Namespace) -> int:
             retries=retries,
             retry_failed=getattr(args, "retry_failed", False),
             redo=getattr(args, "redo", False),
-            decompose_fn=decompose if (workers is None and scheduler is None) else None,
             show_progress=printer.show,
             reporter=printer,
             release_models=True,  # the command ends with the run

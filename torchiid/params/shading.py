@@ -3,7 +3,6 @@
 import dataclasses
 
 from torchiid.params.fields import SCHEDULE_DOWN, SCHEDULE_UP, StageGroup, param, switch
-from torchiid.priors.texture import REMOVAL_SIGMA
 
 __all__ = ["ShadingParameters"]
 
@@ -97,7 +96,7 @@ class ShadingParameters(StageGroup):
         valid=">= 0",
     )
     t_x_sigma: float = param(
-        REMOVAL_SIGMA,
+        5.0,  # torchiid.priors.texture.REMOVAL_SIGMA (a test keeps them equal; no torch here)
         "scale (px) of the local linear fit whose residual S_l's targets lose where t_x finds "
         "texture: grain up to about 2.5·t_x_sigma px apart leaves them, light that bends more "
         "slowly stays (only with t_x > 0)",
