@@ -122,6 +122,7 @@ def test_static_tools_see_every_public_name():
 
 
 LAZY_PACKAGES = ("torchiid.core", "torchiid.io", "torchiid.collection")
+SUBMODULES = {"torchiid.core": "device", "torchiid.io": "layers", "torchiid.collection": "job"}
 
 
 @pytest.mark.parametrize("name", LAZY_PACKAGES)
@@ -135,6 +136,11 @@ def test_lazy_packages_resolve_every_name_and_show_them_to_static_tools(name):
     assert set(package.__all__) <= set(dir(package))
     with pytest.raises(AttributeError, match="has no attribute 'nothing_here'"):
         package.nothing_here  # noqa: B018
+    code = f"import {name} as p, {name}.{SUBMODULES[name]} as m; print(p.{SUBMODULES[name]} is m)"
+    first = f"import {name} as p; print(p.{SUBMODULES[name]}.__name__)"
+    for line, expected in ((code, "True"), (first, f"{name}.{SUBMODULES[name]}")):
+        done = subprocess.run([sys.executable, "-c", line], capture_output=True, text=True)
+        assert done.stdout.strip() == expected, done.stderr[-2000:]  # a submodule, on access
     path = ROOT / Path(*name.split(".")) / "__init__.py"
     tree = ast.parse(path.read_text())
     typed = {

@@ -10,6 +10,7 @@ image done) declare their names with :func:`lazy_names` instead, and list them u
 from __future__ import annotations
 
 import importlib
+import importlib.util
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -20,6 +21,9 @@ def lazy_names(
     package: str, sources: Mapping[str, str], namespace: dict[str, Any]
 ) -> tuple[Callable[[str], Any], Callable[[], list[str]]]:
     """A package's ``__getattr__`` and ``__dir__`` for names defined in its modules.
+
+    A submodule (``torchiid.io.layers``) is imported on first access too, as if the package
+    had imported it.
 
     Args:
         package: the package's ``__name__``.
@@ -35,9 +39,13 @@ def lazy_names(
     """
 
     def __getattr__(name: str) -> Any:
-        if name not in sources:
+        if name in sources:
+            value = getattr(importlib.import_module(sources[name]), name)
+        elif not name.startswith("_") and importlib.util.find_spec(f"{package}.{name}"):
+            # a submodule, imported on first access as if the package had imported it
+            value = importlib.import_module(f"{package}.{name}")
+        else:
             raise AttributeError(f"module {package!r} has no attribute {name!r}")
-        value = getattr(importlib.import_module(sources[name]), name)
         namespace[name] = value
         return value
 

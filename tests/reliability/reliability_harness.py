@@ -103,9 +103,10 @@ def _child(argv: list[str], out: str, err: str) -> None:  # pragma: no cover - r
 
 
 def _serve(spec: Path, results: Path) -> None:  # pragma: no cover - a separate process
-    # what `torchiid decompose` imports when it runs, once, before the forks
+    # what `torchiid decompose` imports when it has images to decompose, once, before the forks
     import torchiid.cli  # noqa: F401
-    import torchiid.collection  # noqa: F401
+    import torchiid.collection.job  # noqa: F401
+    import torchiid.collection.runner  # noqa: F401
     import torchiid.model  # noqa: F401
 
     out = []
