@@ -14,15 +14,10 @@ from torchiid._lazy import lazy_names
 
 if TYPE_CHECKING:  # what static tools see; at run time: __getattr__
     from torchiid.collection.image_files import output_names
-    from torchiid.collection.job import (
-        ImageJob,
-        ImageResult,
-        InterruptedAfterCommit,
-        error_message,
-        process_image,
-    )
+    from torchiid.collection.job import error_message, process_image
     from torchiid.collection.lock import FolderBusyError, OutputLock
     from torchiid.collection.manifest import MANIFEST_NAME, Manifest, ManifestWriter, Plan, plan
+    from torchiid.collection.records import ImageJob, ImageResult, InterruptedAfterCommit
     from torchiid.collection.runner import (
         Progress,
         Reporter,

@@ -215,8 +215,10 @@ def run_collection(
         jobs = the_plan.todo
         if not jobs:
             return summary
-        if scheduler is None and workers is None:
-            from torchiid import model  # noqa: F401 - loaded before the run's clock starts
+        if scheduler is None and workers is None and decompose_fn is None:
+            from torchiid import model  # loaded now, when there is work, before the clock starts
+
+            decompose_fn = model.decompose  # looked up now: a caller may have replaced it
         t1 = time.perf_counter()
         if scheduler is not None:
             from torchiid.collection.dask_runner import run_on_dask
@@ -314,11 +316,9 @@ def _here(
     current: list[ImageJob],
     release_models: bool = False,
 ) -> Iterator[ImageResult]:
-    from torchiid import model  # the model: only when there is work
-    from torchiid.collection.job import process_image
+    from torchiid.collection.job import process_image  # the model: only when there is work
 
-    # looked up now, not when the job module was imported: a caller may have replaced it
-    kwargs = {"decompose_fn": model.decompose if decompose_fn is None else decompose_fn}
+    kwargs = {} if decompose_fn is None else {"decompose_fn": decompose_fn}
     for i, job in enumerate(jobs):
         current[:] = [job]
         last = release_models and i == len(jobs) - 1
