@@ -8,6 +8,7 @@ pid into ``<folder>/<stem>.pid`` at that point and wait.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -40,6 +41,11 @@ def _kill_when_held(folder, stem, sig=signal.SIGKILL, timeout=90):
     thread = threading.Thread(target=run, daemon=True)
     thread.start()
     return thread
+
+
+HELD_NOT_WRITTEN = re.compile(
+    r"torchiid: interrupted while processing \S*IMG_0002\.png \(nothing of it was written\)"
+)
 
 
 def _last(out):
@@ -117,13 +123,90 @@ def test_ctrl_c_stops_every_worker_and_leaves_no_partial_outputs(library, tmp_pa
     err = proc.communicate(timeout=60)[1]
     assert proc.returncode == 130, err
     assert "Traceback" not in err, err
-    assert "torchiid: interrupted while processing" in err and "IMG_0002.png" in err
-    assert not (out / "2020" / "trip").exists()  # nothing of the held image
+    assert HELD_NOT_WRITTEN.search(err), err
+    made = [str(p.relative_to(out)) for p in out.rglob("*")]
+    assert not (out / "2020" / "trip").exists(), (made, err)  # nothing of the held image
     assert not list(out.rglob(".*"))  # no temporary folder, no lock
     for record in read_records(out / "manifest.jsonl"):
         assert record["key"] != "2020/trip/IMG_0002"
         for name in record["files"]:
             assert (out / name).is_file()
+
+
+def test_a_worker_killed_before_it_can_stop_leaves_nothing_of_its_image(library, tmp_path):
+    # The run is interrupted (SIGINT to the parent alone) and the worker on the held image gets
+    # no time to stop (STOP_GRACE 0): it is killed before it removes what it wrote, so the
+    # parent removes the image's temporary files and the folders made for it.
+    hold = tmp_path / "hold"
+    hold.mkdir()
+    out = tmp_path / "out"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "TORCHIID_TEST_HOLD": f"IMG_0002:{hold}"}
+    args = ["decompose", str(library / "2020"), "-r", "-o", str(out)]
+    code = (
+        "import sys\n"
+        "import torchiid.collection.pool as pool\n"
+        "from torchiid.cli import main\n"
+        "pool.STOP_GRACE = 0.0\n"
+        f"sys.exit(main({[*args, '--workers', '1', *FAST]!r}))\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code],
+        env=env,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    marker = hold / "IMG_0002.pid"
+    deadline = time.monotonic() + 90
+    while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert marker.exists(), proc.communicate()[1]
+    assert list((out / "trip").glob(".torchiid-IMG_0002-*"))  # written, not yet in place
+    os.kill(proc.pid, signal.SIGINT)
+    err = proc.communicate(timeout=60)[1]
+    assert proc.returncode == 130, err
+    assert HELD_NOT_WRITTEN.search(err), err
+    assert not (out / "trip").exists(), err  # nothing of the held image
+    assert (out / "IMG_0001-reflectance.png").is_file()  # the image done before it stays
+    assert not list(out.rglob(".*"))
+
+
+def test_a_run_that_ignores_sigint_keeps_its_workers_going_through_one(library, tmp_path):
+    # As a job a shell starts in the background: SIGINT is ignored from the start, so a SIGINT
+    # to the whole group stops nothing; the held image then completes in its first worker.
+    hold = tmp_path / "hold"
+    hold.mkdir()
+    out = tmp_path / "out"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "TORCHIID_TEST_HOLD": f"IMG_0002:{hold}"}
+    args = ["decompose", str(library), "-r", "-o", str(out), "--workers", "2", *FAST]
+    code = (
+        "import signal, sys\n"
+        "signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+        "from torchiid.cli import main\n"
+        f"sys.exit(main({args!r}))\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code],
+        env=env,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    marker = hold / "IMG_0002.pid"
+    deadline = time.monotonic() + 90
+    while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert marker.exists(), proc.communicate()[1]
+    os.killpg(proc.pid, signal.SIGINT)
+    time.sleep(1.0)  # time for a worker that took it to stop
+    (hold / "IMG_0002.go").touch()
+    err = proc.communicate(timeout=90)[1]
+    assert proc.returncode == 1, err  # the bad file
+    assert "4 done, 0 skipped, 1 failed" in err and "retried" not in err, err
+    assert _last(out)["2020/trip/IMG_0002"]["attempts"] == 1
 
 
 def test_sigterm_to_one_worker_is_a_worker_death_not_the_end_of_the_run(

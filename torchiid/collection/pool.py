@@ -12,9 +12,12 @@ times, default once) and the other workers go on undisturbed.
 An interrupt of the run (Ctrl-C reaches every process of the terminal's group; SIGTERM to the
 parent is passed on to the workers) stops each worker in its image: the image's temporary files
 are removed (an image whose files were being put in place completes and is reported), and the
-parent records the results that arrive, then returns. Only a signal to the parent ends the run:
-a worker stopped by a signal of its own (SIGTERM or SIGINT to that process alone) is a worker
-that died; its image is given to a new worker like any other.
+parent records the results that arrive, then returns. A worker still running after
+:data:`STOP_GRACE` seconds is killed; the parent then removes its image's temporary files and
+the folders that did not exist before that image and are empty. Only a signal to the parent
+ends the run: a worker stopped by a signal of its own (SIGTERM or SIGINT to that process alone)
+is a worker that died; its image is given to a new worker like any other. A parent that ignores
+SIGINT (a job that a shell starts in the background) starts workers that ignore it too.
 
 A worker that cannot be set up (:func:`~.worker.worker_state`: the model, the device, the
 ``--mask`` file) says so before it takes an image, and the run stops with that
@@ -51,6 +54,7 @@ from torchiid.collection.settings import RunSettings
 from torchiid.collection.worker import SetupError, worker_state
 from torchiid.core.exceptions import TorchiidError
 from torchiid.core.memory import share_one_malloc_arena
+from torchiid.io.output_set import missing_folders, remove_empty_folders
 
 __all__ = ["WorkerPool", "available_cores", "remove_temporary_sets"]
 
@@ -94,14 +98,18 @@ def remove_temporary_sets(folder: Path, stem: str | None = None) -> int:
 _SIGNALS = {signal.SIGINT, signal.SIGTERM}
 
 
-def _worker_main(conn, settings: RunSettings, decompose_fn: Callable | None) -> None:
+def _worker_main(
+    conn, settings: RunSettings, decompose_fn: Callable | None, ignore_sigint: bool = False
+) -> None:
     """A worker process: warm up, then process the images the parent sends, one at a time.
 
     It starts with SIGINT and SIGTERM blocked (see :meth:`WorkerPool._start`), so that an
     interrupt during the start-up imports waits until here; both then raise
     ``KeyboardInterrupt``, which ends the worker after telling the parent which signal it was
     (the first one only: Ctrl-C to the group and the parent's SIGTERM often both arrive, and
-    the second must not interrupt the removal of the image's temporary files).
+    the second must not interrupt the removal of the image's temporary files). With
+    ``ignore_sigint`` (the parent ignores SIGINT, as a job started in the background by a
+    shell does) the worker ignores it too.
     """
     received: list[str] = []
 
@@ -111,7 +119,7 @@ def _worker_main(conn, settings: RunSettings, decompose_fn: Callable | None) -> 
             raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, terminate)
-    signal.signal(signal.SIGINT, terminate)
+    signal.signal(signal.SIGINT, signal.SIG_IGN if ignore_sigint else terminate)
     logging.basicConfig(level=logging.WARNING, format="torchiid: %(message)s")
     kwargs = {} if decompose_fn is None else {"decompose_fn": decompose_fn}
     try:
@@ -218,6 +226,7 @@ class WorkerPool:
         self._early_deaths = 0
         self.stopped_on: list[ImageJob] | None = None
         self.late_results: list[ImageResult] = []
+        self._new_folders: dict[int, list[Path]] = {}  # per image: its folders missing at first
 
     @property
     def busy(self) -> list[ImageJob]:
@@ -228,9 +237,10 @@ class WorkerPool:
 
     def _start(self) -> _Worker:
         parent, child = self._ctx.Pipe()
+        ignore_sigint = signal.getsignal(signal.SIGINT) is signal.SIG_IGN
         process = self._ctx.Process(
             target=_worker_main,
-            args=(child, self.settings, self.decompose_fn),
+            args=(child, self.settings, self.decompose_fn, ignore_sigint),
             name="torchiid-worker",
             daemon=True,
         )
@@ -295,6 +305,7 @@ class WorkerPool:
                         elif kind == "result":
                             w.job = None
                             pending -= 1
+                            self._new_folders.pop(payload.index, None)
                             yield payload
                         else:
                             w.ready = True
@@ -315,9 +326,13 @@ class WorkerPool:
             raise
         self._stop_all()
 
+    def _folder(self, job: ImageJob) -> Path:
+        return Path(self.settings.out, job.folder) if job.folder else Path(self.settings.out)
+
     def _give(self, w: _Worker, queue: deque) -> None:
         if queue:
             w.job = queue.popleft()
+            self._new_folders.setdefault(w.job.index, missing_folders(self._folder(w.job)))
             w.started_jobs += 1
             w.conn.send(w.job)
         else:
@@ -346,8 +361,7 @@ class WorkerPool:
             return None
         self.deaths += 1
         how = f"stopped by {w.interrupted}" if w.interrupted else _death(w.process.exitcode)
-        folder = Path(self.settings.out, job.folder) if job.folder else Path(self.settings.out)
-        remove_temporary_sets(folder, job.stem)
+        remove_temporary_sets(self._folder(job), job.stem)
         if job.attempt <= self.retries:
             if self.on_retry is not None:
                 self.on_retry(job, how)
@@ -356,6 +370,7 @@ class WorkerPool:
             queue.appendleft(with_attempt(job, job.attempt + 1))
             return None
         attempts = job.attempt
+        remove_empty_folders(self._new_folders.pop(job.index, []))
         return ImageResult(
             job.index,
             job.key,
@@ -394,10 +409,13 @@ class WorkerPool:
             if w.process.is_alive():
                 w.process.kill()
                 w.process.join(timeout=5)
-            if w.job is not None and not any(r.index == w.job.index for r in self.late_results):
-                j = w.job
-                folder = Path(self.settings.out, j.folder) if j.folder else Path(self.settings.out)
-                remove_temporary_sets(folder, j.stem)
             with contextlib.suppress(OSError):
                 w.conn.close()
         self._workers = []
+        # A worker removes what it wrote of its image when it stops, unless it is killed first
+        # (it did not stop within STOP_GRACE): every worker has exited, so nothing can be
+        # writing there now. A folder goes only if it did not exist before the image and is
+        # empty.
+        for job in self.stopped_on:
+            remove_temporary_sets(self._folder(job), job.stem)
+            remove_empty_folders(self._new_folders.pop(job.index, []))

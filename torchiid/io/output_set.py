@@ -38,6 +38,7 @@ __all__ = [
     "check_output_folder",
     "check_target",
     "make_folders",
+    "missing_folders",
     "remove_empty_folders",
 ]
 
@@ -50,17 +51,23 @@ def _why(exc: OSError) -> str:
     return exc.strerror or " ".join(str(exc).split()) or type(exc).__name__
 
 
+def missing_folders(folder: Path) -> list[Path]:
+    """``folder`` and those of its parents that do not exist, innermost first."""
+    missing = []
+    here = folder
+    while not here.exists() and here != here.parent:
+        missing.append(here)
+        here = here.parent
+    return missing
+
+
 def make_folders(folder: Path) -> list[Path]:
     """Create ``folder`` and its missing parents; returns the folders it created, innermost first.
 
     Raises:
         OutputError: the folder cannot be created (the message names it and says why).
     """
-    missing = []
-    here = folder
-    while not here.exists() and here != here.parent:
-        missing.append(here)
-        here = here.parent
+    missing = missing_folders(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
