@@ -44,7 +44,8 @@ def _kill_when_held(folder, stem, sig=signal.SIGKILL, timeout=90):
 
 
 HELD_NOT_WRITTEN = re.compile(
-    r"torchiid: interrupted while processing \S*IMG_0002\.png \(nothing of it was written\)"
+    r"torchiid: interrupted while processing [^(]*IMG_0002\.png "
+    r"\(nothing of (it|them) was written\)"
 )
 
 
@@ -94,31 +95,43 @@ def test_an_image_whose_worker_dies_every_time_fails_alone(library, tmp_path, mo
     assert not list(out.rglob(".*"))
 
 
-def test_ctrl_c_stops_every_worker_and_leaves_no_partial_outputs(library, tmp_path):
-    hold = tmp_path / "hold"
-    hold.mkdir()
-    out = tmp_path / "out"
+def _held_run(code: str, hold, *, own_group: bool) -> subprocess.Popen:
+    """Run Python ``code`` with ``IMG_0002`` held; returns once the hold has begun."""
     env = {
         **os.environ,
         "OMP_NUM_THREADS": "1",
         "PYTHONUNBUFFERED": "1",
         "TORCHIID_TEST_HOLD": f"IMG_0002:{hold}",
     }
-    argv = [sys.executable, "-m", "torchiid.cli", "decompose", str(library), "-r", "-o", str(out)]
     proc = subprocess.Popen(
-        [*argv, "--workers", "2", *FAST],
+        [sys.executable, "-c", code],
         env=env,
         stdin=subprocess.DEVNULL,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
-        start_new_session=True,  # its own process group, like a terminal's foreground job
+        start_new_session=own_group,  # its own process group, like a terminal's foreground job
     )
     marker = hold / "IMG_0002.pid"
     deadline = time.monotonic() + 90
     while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
     assert marker.exists(), proc.communicate()[1]
+    return proc
+
+
+def _main_code(args: list[str], *before: str) -> str:
+    """Python code that runs the ``torchiid`` console script on ``args`` after ``before``."""
+    lines = ["import signal, sys", *before, "from torchiid.cli import console_main"]
+    return "\n".join([*lines, f"sys.argv = ['torchiid', *{args!r}]", "console_main()", ""])
+
+
+def test_ctrl_c_stops_every_worker_and_leaves_no_partial_outputs(library, tmp_path):
+    hold = tmp_path / "hold"
+    hold.mkdir()
+    out = tmp_path / "out"
+    args = ["decompose", str(library), "-r", "-o", str(out), "--workers", "2", *FAST]
+    proc = _held_run(_main_code(args), hold, own_group=True)
     os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C: the whole group
     err = proc.communicate(timeout=60)[1]
     assert proc.returncode == 130, err
@@ -140,28 +153,9 @@ def test_a_worker_killed_before_it_can_stop_leaves_nothing_of_its_image(library,
     hold = tmp_path / "hold"
     hold.mkdir()
     out = tmp_path / "out"
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "TORCHIID_TEST_HOLD": f"IMG_0002:{hold}"}
-    args = ["decompose", str(library / "2020"), "-r", "-o", str(out)]
-    code = (
-        "import sys\n"
-        "import torchiid.collection.pool as pool\n"
-        "from torchiid.cli import main\n"
-        "pool.STOP_GRACE = 0.0\n"
-        f"sys.exit(main({[*args, '--workers', '1', *FAST]!r}))\n"
-    )
-    proc = subprocess.Popen(
-        [sys.executable, "-c", code],
-        env=env,
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    marker = hold / "IMG_0002.pid"
-    deadline = time.monotonic() + 90
-    while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert marker.exists(), proc.communicate()[1]
+    args = ["decompose", str(library / "2020"), "-r", "-o", str(out), "--workers", "1", *FAST]
+    no_grace = ["import torchiid.collection.pool as pool", "pool.STOP_GRACE = 0.0"]
+    proc = _held_run(_main_code(args, *no_grace), hold, own_group=False)
     assert list((out / "trip").glob(".torchiid-IMG_0002-*"))  # written, not yet in place
     os.kill(proc.pid, signal.SIGINT)
     err = proc.communicate(timeout=60)[1]
@@ -178,28 +172,9 @@ def test_a_run_that_ignores_sigint_keeps_its_workers_going_through_one(library, 
     hold = tmp_path / "hold"
     hold.mkdir()
     out = tmp_path / "out"
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "TORCHIID_TEST_HOLD": f"IMG_0002:{hold}"}
     args = ["decompose", str(library), "-r", "-o", str(out), "--workers", "2", *FAST]
-    code = (
-        "import signal, sys\n"
-        "signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
-        "from torchiid.cli import main\n"
-        f"sys.exit(main({args!r}))\n"
-    )
-    proc = subprocess.Popen(
-        [sys.executable, "-c", code],
-        env=env,
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
-    marker = hold / "IMG_0002.pid"
-    deadline = time.monotonic() + 90
-    while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert marker.exists(), proc.communicate()[1]
+    ignore = "signal.signal(signal.SIGINT, signal.SIG_IGN)"
+    proc = _held_run(_main_code(args, ignore), hold, own_group=True)
     os.killpg(proc.pid, signal.SIGINT)
     time.sleep(1.0)  # time for a worker that took it to stop
     (hold / "IMG_0002.go").touch()
@@ -271,3 +246,21 @@ def test_a_worker_s_threads_share_one_malloc_arena(tmp_path, monkeypatch):
     summary = run_collection(items, settings, workers=1, decompose_fn=decompose_counting_arenas)
     assert summary.done == 1
     assert count.read_text().count("Arena ") == 1  # glibc's default: one more per thread
+
+
+@pytest.mark.parametrize(("on", "them"), [(["a.png"], "it"), (["a.png", "b.png"], "them")])
+def test_the_interrupt_line_names_the_images_it_stopped(
+    library, tmp_path, monkeypatch, capsys, on, them
+):
+    import torchiid.collection
+    from torchiid.collection import RunInterrupted, RunSummary
+
+    def interrupted(*args, **kwargs):
+        raise RunInterrupted(RunSummary(total=5, done=2, interrupted_on=on))
+
+    monkeypatch.setattr(torchiid.collection, "run_collection", interrupted)
+    argv = ["decompose", str(library / "cover.png"), "-o", str(tmp_path / "out"), *FAST]
+    assert main(argv) == 130
+    names = ", ".join(on)
+    line = f"torchiid: interrupted while processing {names} (nothing of {them} was written);"
+    assert f"{line} 2 of 5 input(s) written" in capsys.readouterr().err

@@ -298,7 +298,8 @@ def run(args: argparse.Namespace) -> int:
         where = ""
         if s.interrupted_on:
             names = ", ".join(s.interrupted_on)
-            where = f" while processing {names} (nothing of it was written)"
+            them = "it" if len(s.interrupted_on) == 1 else "them"
+            where = f" while processing {names} (nothing of {them} was written)"
         skipped = f", {s.skipped_done} skipped as done before" if s.skipped_done else ""
         print(
             f"torchiid: interrupted{where}; {s.done} of {s.total} input(s) written{skipped}",
