@@ -95,6 +95,24 @@ def test_an_image_whose_worker_dies_every_time_fails_alone(library, tmp_path, mo
     assert not list(out.rglob(".*"))
 
 
+def test_an_image_that_fails_with_its_worker_leaves_no_folder_made_for_it(
+    library, tmp_path, monkeypatch, capsys
+):
+    hold = tmp_path / "hold"
+    hold.mkdir()
+    monkeypatch.setenv("TORCHIID_TEST_HOLD", f"IMG_0002:{hold}")
+    out = tmp_path / "out"
+    killer = _kill_when_held(hold, "IMG_0002")
+    argv = ["decompose", str(library / "2020"), "-r", "-o", str(out), "--workers", "1"]
+    assert main([*argv, "--retries", "0", *FAST]) == 1
+    killer.join()
+    err = capsys.readouterr().err
+    assert "IMG_0002.png: the worker process died while processing it (killed by SIGKILL)" in err
+    assert _last(out)["trip/IMG_0002"]["failure"] == "worker"
+    assert not (out / "trip").exists()  # made for the image, empty once its files are gone
+    assert (out / "IMG_0001-reflectance.png").is_file()
+
+
 def _held_run(code: str, hold, *, own_group: bool) -> subprocess.Popen:
     """Run Python ``code`` with ``IMG_0002`` held; returns once the hold has begun."""
     env = {
