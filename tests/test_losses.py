@@ -125,3 +125,50 @@ def test_layers_of_another_size_than_the_priors_are_a_shape_error():
         loss(*crop, pr)
     with pytest.raises(ShapeError, match="shading has shape"):
         loss(m.image, m.reflectance, m.shading[..., :12, :12], pr)
+
+
+# dynamo reads the .grad of the network's outputs (not leaves) as it hands them to the eager
+# loss; torch's warning about that is an error under this suite's filter
+@pytest.mark.filterwarnings("ignore:The .grad attribute of a Tensor that is not a leaf")
+def test_torch_compile_compiles_the_network_around_the_loss():
+    """A training step compiles the network; the loss runs as it is and its gradient arrives."""
+
+    class Step(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.net = torch.nn.Conv2d(3, 4, 3, padding=1)  # log R (3) and log S (1)
+            self.loss = PriorLoss(PARAMS, log_space=True)
+
+        def forward(self, image, priors):
+            out = self.net(image.log())
+            return self.loss(image, out[:, :3], out[:, 3:], priors)
+
+    graphs = []
+
+    def backend(gm, example_inputs):  # records what dynamo hands over, runs it eagerly
+        graphs.append(gm)
+        return gm.forward
+
+    torch._dynamo.reset()
+    torch.manual_seed(0)
+    step, image = Step(), mondrian(24, 24, seed=3).image
+    priors = step.loss.priors(image)
+    eager = step(image, priors)
+    eager.backward()
+    grads = [p.grad.clone() for p in step.net.parameters()]
+    step.zero_grad()
+    compiled = torch.compile(step, backend=backend)(image, priors)
+    compiled.backward()
+    assert torch.equal(compiled, eager)
+    for p, g in zip(step.net.parameters(), grads, strict=True):
+        assert torch.equal(p.grad, g)
+    ops = [n.target for g in graphs for n in g.graph.nodes if n.op == "call_function"]
+    assert torch.conv2d in ops, "the network was not compiled"
+    assert len(ops) <= 6, f"the loss was traced: {len(ops)} operations"
+    # the terms one by one, too
+    graphs.clear()
+    r, s = image.log(), torch.zeros_like(image[:, :1])
+    terms = torch.compile(step.loss.components, backend=backend)(image, r, s, priors)
+    assert terms.keys() == step.loss.components(image, r, s, priors).keys()
+    assert not [n for g in graphs for n in g.graph.nodes if n.op == "call_function"]
+    torch._dynamo.reset()

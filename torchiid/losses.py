@@ -23,8 +23,9 @@ bfloat16 one: layers from a mixed-precision network are evaluated in the priors'
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import nn
@@ -241,9 +242,16 @@ class PriorLoss(nn.Module):
         Layers in another dtype than the priors (float16 or bfloat16 under mixed precision)
         are evaluated in the priors' dtype; the gradient flows back through the conversion.
 
+        Under ``torch.compile`` the terms are taken as they are, outside the compiled graph,
+        while the network around them compiles; their gradient reaches the network's layers
+        all the same.
+
         Raises:
             ShapeError: the image, the layers and the priors differ in batch or size.
         """
+        return _eager(self._components)(image, reflectance, shading, priors, mask)
+
+    def _components(self, image, reflectance, shading, priors, mask) -> dict[str, torch.Tensor]:
         check_same_batch(image, reflectance, shading, names=["image", "reflectance", "shading"])
         if priors is None:
             priors = (
@@ -288,5 +296,20 @@ class PriorLoss(nn.Module):
         mask: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """The total loss, a scalar (mean over the batch); see :meth:`components`."""
-        parts = self.components(image, reflectance, shading, priors, mask)
+        return _eager(self._total)(image, reflectance, shading, priors, mask)
+
+    def _total(self, image, reflectance, shading, priors, mask) -> torch.Tensor:
+        parts = self._components(image, reflectance, shading, priors, mask)
         return torch.stack(list(parts.values())).sum(0).mean()
+
+
+def _eager(run: Callable[..., Any]) -> Callable[..., Any]:
+    """``run``, or under ``torch.compile`` ``run`` left out of the compiled graph.
+
+    The loss gains nothing from compilation: its priors' sums over stencil offsets and their
+    NumPy and numba calls make dynamo split it into some 16 graphs of about 570 operations,
+    which inductor takes minutes to compile even for a 64x64 image. Decided at the call, not
+    by marking the methods: ``torch.compiler.disable`` imports the compiler's machinery, over
+    a second and 80 MB for every process.
+    """
+    return torch.compiler.disable(run) if torch.compiler.is_compiling() else run
