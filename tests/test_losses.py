@@ -171,4 +171,10 @@ def test_torch_compile_compiles_the_network_around_the_loss():
     terms = torch.compile(step.loss.components, backend=backend)(image, r, s, priors)
     assert terms.keys() == step.loss.components(image, r, s, priors).keys()
     assert not [n for g in graphs for n in g.graph.nodes if n.op == "call_function"]
+    # and the priors
+    built = torch.compile(step.loss.priors, backend=backend)(image)
+    assert built.shading.keys() == priors.shading.keys()
+    for name, prior in built.shading.items():
+        assert torch.equal(prior.matvec(s), priors.shading[name].matvec(s))
+    assert not [n for g in graphs for n in g.graph.nodes if n.op == "call_function"]
     torch._dynamo.reset()

@@ -224,8 +224,11 @@ class PriorLoss(nn.Module):
         features: SemanticFeatures | None = None,
         mask: torch.Tensor | None = None,
     ) -> ImagePriors:
-        """The priors of ``image`` (no gradient); cache them for fixed training crops."""
-        return image_priors(
+        """The priors of ``image`` (no gradient); cache them for fixed training crops.
+
+        Under ``torch.compile`` they are built as they are, outside the compiled graph.
+        """
+        return _eager(image_priors)(
             image, self.params, features=features, mask=mask, alternation=self.alternation
         )
 
@@ -308,7 +311,8 @@ def _eager(run: Callable[..., Any]) -> Callable[..., Any]:
 
     The loss gains nothing from compilation: its priors' sums over stencil offsets and their
     NumPy and numba calls make dynamo split it into some 16 graphs of about 570 operations,
-    which inductor takes minutes to compile even for a 64x64 image. Decided at the call, not
+    which inductor takes minutes to compile even for a 64x64 image; building the priors runs
+    onnxruntime, NumPy and numba. Decided at the call, not
     by marking the methods: ``torch.compiler.disable`` imports the compiler's machinery, over
     a second and 80 MB for every process.
     """
