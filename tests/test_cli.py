@@ -325,6 +325,27 @@ sys.exit(main(sys.argv[1:]))
     assert "Traceback" in loud.stderr and "in bug\nTypeError: a bug" in loud.stderr
 
 
+def test_a_broken_torch_installation_is_a_set_up_error_that_names_it(photo, tmp_path):
+    fake = tmp_path / "site" / "torch"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text(
+        'raise ImportError("libtorch_cpu.so: cannot open shared object file")\n'
+    )
+    env = {**os.environ, "PYTHONPATH": str(fake.parent)}
+    out = tmp_path / "out"
+    argv = ["decompose", str(photo), "-o", str(out), "--no-progress"]
+    code = "import sys; from torchiid.cli import main; sys.exit(main(sys.argv[1:]))"
+    done = subprocess.run(
+        [sys.executable, "-c", code, *argv], capture_output=True, text=True, env=env
+    )
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip().splitlines()[-1] == (
+        "torchiid: error: torch is installed but cannot be imported (libtorch_cpu.so: cannot "
+        "open shared object file); reinstall it: pip install --force-reinstall torch"
+    )
+    assert "Traceback" not in done.stderr and not out.exists()
+
+
 def test_threads_are_set_for_the_run_and_restored(photo, tmp_path, monkeypatch):
     import os
 

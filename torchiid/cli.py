@@ -227,10 +227,20 @@ def _module(name: str):
 
 def _report(exc: Exception) -> int:
     """Print an exception that ended a command in one line; returns the exit status."""
-    from torchiid.core.exceptions import TorchiidError, caused_by_interrupt, one_line
+    from torchiid.core.exceptions import (
+        TorchiidError,
+        caused_by_interrupt,
+        one_line,
+        unimportable_dependency,
+    )
 
     if isinstance(exc, TorchiidError):
         print(f"torchiid: error: {one_line(str(exc))}", file=sys.stderr)
+        return 2
+    broken = unimportable_dependency(exc)
+    if broken is not None:  # the installation's fault: a set-up error
+        print(f"torchiid: error: {broken}", file=sys.stderr)
+        log.info("the error above came from here:", exc_info=exc)
         return 2
     if caused_by_interrupt(exc):  # Ctrl-C inside a compiled kernel
         print("torchiid: interrupted", file=sys.stderr)

@@ -249,6 +249,24 @@ def test_an_unexpected_error_is_one_line_too(calls, chelsea_session, monkeypatch
     assert err.value.message == "internal error (RuntimeError: the GPU caught fire second line)"
 
 
+def test_a_library_that_cannot_be_imported_is_named_in_the_page(
+    calls, chelsea_session, monkeypatch, tmp_path
+):
+    (tmp_path / "brokenlib.py").write_text('raise ImportError("libbroken.so: not found")\n')
+    monkeypatch.syspath_prepend(str(tmp_path))
+
+    def needs_it(*args, **kwargs):
+        import brokenlib  # noqa: F401
+
+    monkeypatch.setattr(callbacks, "render", needs_it)
+    with pytest.raises(gr.Error) as err:
+        calls.preview(chelsea_session, None, COMPARE[0], *DEFAULTS)
+    assert err.value.message == (
+        "brokenlib is installed but cannot be imported (libbroken.so: not found); "
+        "reinstall it: pip install --force-reinstall brokenlib"
+    )
+
+
 def test_preview_compares_the_photo_with_the_edited_layers(calls, chelsea_session):
     s = chelsea_session
     before, after = calls.preview(s, None, COMPARE[0], *DEFAULTS)

@@ -1,3 +1,6 @@
+import importlib
+import sys
+
 import pytest
 
 from torchiid.core.exceptions import (
@@ -8,6 +11,7 @@ from torchiid.core.exceptions import (
     caused_by_interrupt,
     describe_error,
     one_line,
+    unimportable_dependency,
 )
 
 
@@ -38,3 +42,47 @@ def test_an_interrupt_anywhere_in_the_cause_chain_is_found():
     loop.__context__ = RuntimeError("b")
     loop.__context__.__context__ = loop  # a cycle ends the walk
     assert not caused_by_interrupt(loop)
+
+
+def _import_error(name: str) -> ImportError:
+    try:
+        importlib.import_module(name)
+    except ImportError as err:
+        return err
+    raise AssertionError(f"{name} imported")
+
+
+def test_a_library_that_cannot_be_imported_is_named_with_its_fix(tmp_path, monkeypatch):
+    broken = tmp_path / "brokenlib"
+    broken.mkdir()
+    (broken / "__init__.py").write_text("from brokenlib import _core\n")
+    (broken / "_core.py").write_text(
+        'raise ImportError("libbroken.so: cannot open shared object")\n'
+    )
+    (tmp_path / "outerlib.py").write_text("import brokenlib\n")  # as kornia imports torch
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name in ("brokenlib", "outerlib"):
+        err = _import_error(name)
+        assert unimportable_dependency(err) == (
+            "brokenlib is installed but cannot be imported (libbroken.so: cannot open shared "
+            "object); reinstall it: pip install --force-reinstall brokenlib"
+        )
+        assert describe_error(err) == unimportable_dependency(err)  # a failed input says so
+        for module in ("brokenlib", "brokenlib._core", "outerlib"):
+            sys.modules.pop(module, None)
+    missing = _import_error("torchiid_test_not_installed")
+    assert unimportable_dependency(missing) == (
+        "torchiid_test_not_installed is not installed (No module named "
+        "'torchiid_test_not_installed'); install it: pip install torchiid_test_not_installed"
+    )
+    # the same, imported from a module of torchiid's
+    with pytest.raises(ImportError) as raised:
+        exec("import torchiid_test_not_installed", {"__name__": "torchiid.some_module"})
+    assert unimportable_dependency(raised.value) == unimportable_dependency(missing)
+
+
+def test_an_import_error_of_torchiid_itself_or_another_error_is_not_the_installations():
+    assert unimportable_dependency(_import_error("torchiid.no_such_module")) is None
+    assert unimportable_dependency(KeyError("x")) is None
+    bug = describe_error(_import_error("torchiid.no_such_module"))
+    assert bug.startswith("internal error (ModuleNotFoundError") and "--verbose" in bug

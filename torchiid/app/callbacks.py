@@ -27,7 +27,7 @@ from torchiid.app.edits import EditSettings, load_texture, render, texture_of
 from torchiid.app.files import ServerFolder, write_edited, write_layers_zip
 from torchiid.app.objects import highlight
 from torchiid.app.session import Session, open_photo, srgb8, view_shading
-from torchiid.core.exceptions import TorchiidError, one_line
+from torchiid.core.exceptions import TorchiidError, one_line, unimportable_dependency
 from torchiid.params import Parameters
 
 __all__ = [
@@ -98,7 +98,9 @@ def _user_errors(fn: Callable) -> Callable:
             raise gr.Error(_message(exc, uploads), duration=None, print_exception=False) from None
         except Exception as exc:  # noqa: BLE001 - one line in the page, the traceback in the log
             log.error("torchiid app: %s failed", fn.__name__, exc_info=exc)
-            text = f"internal error ({type(exc).__name__}: {_message(exc, uploads)})"
+            text = unimportable_dependency(exc) or (
+                f"internal error ({type(exc).__name__}: {_message(exc, uploads)})"
+            )
             raise gr.Error(text, duration=None, print_exception=False) from None
 
     return wrapper

@@ -19,6 +19,7 @@ __all__ = [
     "InputWarning",
     "one_line",
     "describe_error",
+    "unimportable_dependency",
 ]
 
 
@@ -76,6 +77,9 @@ def describe_error(exc: BaseException) -> str:
     """
     if isinstance(exc, TorchiidError):
         return one_line(str(exc))
+    broken = unimportable_dependency(exc)
+    if broken is not None:
+        return broken
     if isinstance(exc, OSError):
         where = f" {exc.filename}" if exc.filename else ""
         return f"cannot access{where} ({exc.strerror or one_line(str(exc))})"
@@ -101,3 +105,50 @@ def caused_by_interrupt(exc: BaseException) -> bool:
         seen.add(id(cur))
         cur = cur.__cause__ or cur.__context__
     return False
+
+
+def unimportable_dependency(exc: BaseException) -> str | None:
+    """What to tell a user whose installed library (torch, numba, ...) cannot be imported.
+
+    An ``ImportError`` raised while another package is imported (a missing shared library of
+    torch, a numba built for another NumPy, a dependency that is not installed) is a fault of
+    the installation, not of torchiid, and reinstalling that package mends it. ``None`` for
+    any other exception, and for an ``ImportError`` of torchiid's own modules.
+    """
+    if not isinstance(exc, ImportError):
+        return None
+    package = _importing_package(exc)
+    if package is None or package == "torchiid":
+        return None
+    dist = _distribution(package)
+    if isinstance(exc, ModuleNotFoundError) and exc.name == package:
+        return f"{package} is not installed ({one_line(str(exc))}); install it: pip install {dist}"
+    return (
+        f"{package} is installed but cannot be imported ({one_line(str(exc))}); reinstall it: "
+        f"pip install --force-reinstall {dist}"
+    )
+
+
+def _importing_package(exc: ImportError) -> str | None:
+    """The top-level package whose import raised ``exc``, or ``None`` if none is known.
+
+    The package of the innermost frame, where the import failed (kornia importing a broken
+    torch: torch); where that frame is torchiid's own or the import machinery's (a module that
+    was not found, a name that was not in it), the module that ``exc`` names.
+    """
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    if tb is not None:
+        top = str(tb.tb_frame.f_globals.get("__name__", "")).partition(".")[0]
+        if top and top not in ("torchiid", "importlib", "__main__"):
+            return top
+    return exc.name.partition(".")[0] if exc.name else None
+
+
+def _distribution(package: str) -> str:
+    """The name pip installs ``package`` by (``cv2`` -> its OpenCV wheel), else the package's."""
+    from importlib.metadata import packages_distributions
+
+    names = packages_distributions().get(package)
+    return names[0] if names else package
