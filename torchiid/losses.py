@@ -23,14 +23,14 @@ bfloat16 one: layers from a mixed-precision network are evaluated in the priors'
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 from torch import nn
 
 from torchiid.core.check import as_mask, check_same_batch
+from torchiid.core.compiling import eager_under_compile
 from torchiid.core.exceptions import ShapeError
 from torchiid.features.semantic import SemanticFeatures, semantic_features
 from torchiid.params import Parameters
@@ -228,7 +228,7 @@ class PriorLoss(nn.Module):
 
         Under ``torch.compile`` they are built as they are, outside the compiled graph.
         """
-        return _eager(image_priors)(
+        return eager_under_compile(image_priors)(
             image, self.params, features=features, mask=mask, alternation=self.alternation
         )
 
@@ -252,7 +252,7 @@ class PriorLoss(nn.Module):
         Raises:
             ShapeError: the image, the layers and the priors differ in batch or size.
         """
-        return _eager(self._components)(image, reflectance, shading, priors, mask)
+        return eager_under_compile(self._components)(image, reflectance, shading, priors, mask)
 
     def _components(self, image, reflectance, shading, priors, mask) -> dict[str, torch.Tensor]:
         check_same_batch(image, reflectance, shading, names=["image", "reflectance", "shading"])
@@ -299,21 +299,8 @@ class PriorLoss(nn.Module):
         mask: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """The total loss, a scalar (mean over the batch); see :meth:`components`."""
-        return _eager(self._total)(image, reflectance, shading, priors, mask)
+        return eager_under_compile(self._total)(image, reflectance, shading, priors, mask)
 
     def _total(self, image, reflectance, shading, priors, mask) -> torch.Tensor:
         parts = self.components(image, reflectance, shading, priors, mask)
         return torch.stack(list(parts.values())).sum(0).mean()
-
-
-def _eager(run: Callable[..., Any]) -> Callable[..., Any]:
-    """``run``, or under ``torch.compile`` ``run`` left out of the compiled graph.
-
-    The loss gains nothing from compilation: its priors' sums over stencil offsets and their
-    NumPy and numba calls make dynamo split it into some 16 graphs of about 570 operations,
-    which inductor takes minutes to compile even for a 64x64 image; building the priors runs
-    onnxruntime, NumPy and numba. Decided at the call, not
-    by marking the methods: ``torch.compiler.disable`` imports the compiler's machinery, over
-    a second and 80 MB for every process.
-    """
-    return torch.compiler.disable(run) if torch.compiler.is_compiling() else run

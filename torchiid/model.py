@@ -27,6 +27,7 @@ import torch
 from torch import nn
 
 from torchiid._version import __version__
+from torchiid.core.compiling import eager_under_compile
 from torchiid.core.exceptions import ParameterError
 from torchiid.features.semantic import SemanticFeatures, semantic_features
 from torchiid.params import PRESETS, Parameters
@@ -283,13 +284,9 @@ class IntrinsicDecomposer(nn.Module):
 
     def forward(self, image: torch.Tensor, mask: torch.Tensor | None = None) -> Decomposition:
         """Decompose ``image``; see :func:`decompose`."""
-        run = decompose
-        if torch.compiler.is_compiling():
-            # left eager: its steps are data-dependent solver loops, NumPy, numba and
-            # onnxruntime calls, which dynamo would split into hundreds of graphs (and inductor
-            # mis-compiles some) for no gain. Marked here, not on decompose itself:
-            # torch.compiler.disable imports dynamo, over a second and 80 MB for every process
-            run = torch.compiler.disable(decompose)
+        # left out of a compiled graph: dynamo would split the decomposition into hundreds
+        # of graphs (and inductor mis-compiles some) for no gain
+        run = eager_under_compile(decompose)
         return run(image, self.params, mask=mask, return_iterations=self.return_iterations)
 
     def extra_repr(self) -> str:

@@ -263,7 +263,7 @@ def test_a_library_that_cannot_be_imported_is_named_in_the_page(
         calls.preview(chelsea_session, None, COMPARE[0], *DEFAULTS)
     assert err.value.message == (
         "brokenlib is installed but cannot be imported (libbroken.so: not found); "
-        "reinstall it: pip install --force-reinstall brokenlib"
+        "reinstall it: pip install --force-reinstall --no-deps brokenlib"
     )
 
 

@@ -65,7 +65,7 @@ def test_a_library_that_cannot_be_imported_is_named_with_its_fix(tmp_path, monke
         err = _import_error(name)
         assert unimportable_dependency(err) == (
             "brokenlib is installed but cannot be imported (libbroken.so: cannot open shared "
-            "object); reinstall it: pip install --force-reinstall brokenlib"
+            "object); reinstall it: pip install --force-reinstall --no-deps brokenlib"
         )
         assert describe_error(err) == unimportable_dependency(err)  # a failed input says so
         for module in ("brokenlib", "brokenlib._core", "outerlib"):

@@ -1,4 +1,4 @@
-"""Shared machinery: exceptions, input checks, the device choice and the sRGB curve.
+"""Shared machinery: exceptions, input checks, the device, the sRGB curve, torch.compile.
 
 The names below load on first use (:mod:`torchiid._lazy`): ``torchiid.core.exceptions`` and
 the other light modules import without torch.

@@ -125,9 +125,13 @@ def unimportable_dependency(exc: BaseException) -> str | None:
     dist = _distribution(package)
     if isinstance(exc, ModuleNotFoundError) and exc.name == package:
         return f"{package} is not installed ({one_line(str(exc))}); install it: pip install {dist}"
+    # the same version again, and nothing else: a plain reinstall of torch would fetch the
+    # newest build (CUDA's, gigabytes) and reinstall every dependency too
+    version = _installed_version(dist)
+    pinned = f"{dist}=={version}" if version else dist
     return (
         f"{package} is installed but cannot be imported ({one_line(str(exc))}); reinstall it: "
-        f"pip install --force-reinstall {dist}"
+        f"pip install --force-reinstall --no-deps {pinned}"
     )
 
 
@@ -159,7 +163,7 @@ def _importing_package(exc: ImportError) -> str | None:
 #: the pip names of torchiid's dependencies whose module is named otherwise, for where the
 #: installed metadata does not say (a package that is not installed, or one without
 #: ``top_level.txt`` on Python 3.10)
-DISTRIBUTIONS = {
+_DISTRIBUTIONS = {
     "cv2": "opencv-contrib-python-headless",
     "skimage": "scikit-image",
     "PIL": "pillow",
@@ -176,4 +180,14 @@ def _distribution(package: str) -> str:
         names = packages_distributions().get(package)
     except Exception:  # noqa: BLE001 - metadata of a broken environment: fall back
         names = None
-    return names[0] if names else DISTRIBUTIONS.get(package, package)
+    return names[0] if names else _DISTRIBUTIONS.get(package, package)
+
+
+def _installed_version(dist: str) -> str | None:
+    """The installed version of ``dist`` as PyPI names it (``2.13.0+cpu`` -> ``2.13.0``)."""
+    try:
+        from importlib.metadata import version
+
+        return version(dist).partition("+")[0]
+    except Exception:  # noqa: BLE001 - no or broken metadata: no version to pin
+        return None
