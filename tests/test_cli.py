@@ -478,6 +478,45 @@ def test_a_capped_solve_of_the_converged_preset_is_a_note(photo, tmp_path, monke
     assert capsys.readouterr().err == ""
 
 
+def test_the_first_compilation_of_the_kernels_is_a_note_above_the_bar(
+    photo, tmp_path, monkeypatch, capsys
+):
+    import importlib.util
+
+    import torchiid.model as model
+    from torchiid.priors.kernel_runtime import compiled
+
+    if compiled() is None:
+        pytest.skip("the compiled kernels are off (no numba or TORCHIID_KERNELS=torch)")
+    source = tmp_path / "probe.py"
+    source.write_text("from numba import njit\n\n\n@njit\ndef one(x):\n    return x + 1\n")
+    real = model.decompose
+
+    def compiling(*args, **kwargs):  # as on a first run: a kernel of torchiid's compiles
+        spec = importlib.util.spec_from_file_location("torchiid.probe", source)
+        probe = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(probe)
+        probe.one(1)
+        probe.one(1.0)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(model, "decompose", compiling)
+    argv = ["decompose", str(photo / "cat.png"), "--iterations", "1"]
+    assert main([*argv, "-o", str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err
+    note = (
+        "torchiid: note: compiling the CPU kernels, once for this Python environment (up to a "
+        "minute; later runs load them from numba's cache)"
+    )
+    assert err.count(note) == 1
+    assert f"{note}\n" in err and "images:" in err.split(note)[1]  # a line; the bar below it
+    assert main([*argv, "-o", str(tmp_path / "b"), "-q"]) == 0
+    assert capsys.readouterr().err == ""
+    monkeypatch.setattr(model, "decompose", real)  # the kernels are in the cache: no note
+    assert main([*argv, "-o", str(tmp_path / "c")]) == 0
+    assert "compiling" not in capsys.readouterr().err
+
+
 def test_commands_are_registered_in_one_table():
     names = [c.name for c in COMMANDS]
     assert len(set(names)) == len(names)

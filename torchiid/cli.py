@@ -165,7 +165,10 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
 
             torch_threads = torch.get_num_threads()
             torch.set_num_threads(threads)
-        return _module(args.command).run(args)
+        from torchiid.core.first_compile import notify_first_compile
+
+        with notify_first_compile(lambda: _compiling_note(args.quiet)):
+            return _module(args.command).run(args)
     except KeyboardInterrupt:
         print("torchiid: interrupted", file=sys.stderr)
         return 130
@@ -217,6 +220,17 @@ def _notes(shown: Callable[..., None], quiet: bool) -> Callable[..., None]:
             print(f"torchiid: note: {message}", file=sys.stderr)
 
     return show
+
+
+def _compiling_note(quiet: bool) -> None:
+    """Say that the kernels are compiling (the first run in an environment), above any bar."""
+    if quiet:
+        return
+    from tqdm import tqdm
+
+    from torchiid.core.first_compile import COMPILING
+
+    tqdm.write(f"torchiid: note: {COMPILING}", file=sys.stderr)
 
 
 def _module(name: str):

@@ -57,6 +57,34 @@ def test_progress_goes_through_stage_0_and_every_alternation(photos):
     assert messages[-1] == "full-resolution layers"
 
 
+def test_the_kernels_compiling_shows_in_the_progress(photos, monkeypatch):
+    import torchiid.app.session as session
+    from torchiid.core.first_compile import COMPILING
+    from torchiid.priors.kernel_runtime import compiled
+
+    if compiled() is None:
+        pytest.skip("the compiled kernels are off (no numba or TORCHIID_KERNELS=torch)")
+    from numba import njit
+
+    real = session.decompose
+
+    def compiling(*args, **kwargs):  # as on a first run: a kernel of torchiid's compiles
+        namespace = {"__name__": "torchiid.app_probe"}
+        exec("def one(x):\n    return x + 1\n", namespace)
+        njit(namespace["one"])(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(session, "decompose", compiling)
+    seen: list[tuple[float, str]] = []
+    open_photo(photos["small"], ONE, progress=lambda f, m: seen.append((f, m)))
+    assert (0.0, COMPILING) in seen
+    assert seen.index((0.0, COMPILING)) == seen.index((0.0, "Stage 0: semantic features")) + 1
+    monkeypatch.setattr(session, "decompose", real)
+    seen.clear()
+    open_photo(photos["small"], ONE, progress=lambda f, m: seen.append((f, m)))
+    assert COMPILING not in [m for _, m in seen]
+
+
 def test_a_large_photo_goes_through_the_working_resolution(photos):
     s = open_photo(photos["large"], ONE.replace(max_side=128))
     assert s.full.image.shape == (1, 3, 1000, 1500)

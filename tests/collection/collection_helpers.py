@@ -55,3 +55,21 @@ def decompose_counting_arenas(image, params, **kwargs):
         os.close(saved)
         os.close(fd)
     return decompose(image, params, **kwargs)
+
+
+def decompose_compiling_a_kernel(image, params, **kwargs):
+    """:func:`torchiid.model.decompose`, after compiling a kernel of torchiid's, as on a first run.
+
+    A worker's decomposition for the pool tests: the kernel (``x + 1``, defined in a module
+    named like torchiid's) is not cached, so numba compiles it in every worker.
+    """
+    from numba import njit
+
+    from torchiid.model import decompose
+    from torchiid.priors.kernel_runtime import compiled
+
+    compiled()  # what torchiid does before its first kernel
+    namespace = {"__name__": "torchiid.worker_probe"}
+    exec("def one(x):\n    return x + 1\n", namespace)
+    njit(namespace["one"])(1)
+    return decompose(image, params, **kwargs)

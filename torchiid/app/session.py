@@ -22,6 +22,7 @@ import torch
 
 from torchiid.app.objects import Objects
 from torchiid.core.exceptions import ImageError, InputWarning, MemoryLimitError
+from torchiid.core.first_compile import COMPILING, notify_first_compile
 from torchiid.io import load_image
 from torchiid.io.decode import declared_size
 from torchiid.io.layers import srgb8_from_linear
@@ -254,23 +255,27 @@ def open_photo(
     total = params.iterations + 2  # Stage 0, the alternations, the full-resolution layers
     say(0.0, "Stage 0: semantic features")
 
+    done = [0.0]  # the fraction the bar shows
+
     def step(stage: str, k: int, of: int) -> None:
+        done[0] = (1 + k) / total
         if stage == "features":
-            say(1 / total, f"alternation 1 of {of}")
+            say(done[0], f"alternation 1 of {of}")
         elif k < of:
-            say((1 + k) / total, f"alternation {k + 1} of {of}")
+            say(done[0], f"alternation {k + 1} of {of}")
         else:
-            say((1 + k) / total, "full-resolution layers")
+            say(done[0], "full-resolution layers")
 
     mask = None if loaded.mask is None else loaded.mask[None].to(device)
-    result = decompose(
-        loaded.image[None].to(device),
-        params,
-        mask=mask,
-        progress=step,
-        return_features=True,
-        **flags,
-    )
+    with notify_first_compile(lambda: say(done[0], COMPILING)):
+        result = decompose(
+            loaded.image[None].to(device),
+            params,
+            mask=mask,
+            progress=step,
+            return_features=True,
+            **flags,
+        )
     cpu = [x.cpu() for x in (result.reflectance, result.shading, result.sigma, result.rho)]
     full = Layers(loaded.image[None], *cpu, None if loaded.mask is None else loaded.mask[None])
     wh, ww = result.working_size

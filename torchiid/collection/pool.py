@@ -53,6 +53,7 @@ from torchiid.collection.job import (
 from torchiid.collection.settings import RunSettings
 from torchiid.collection.worker import SetupError, worker_state
 from torchiid.core.exceptions import TorchiidError
+from torchiid.core.first_compile import COMPILING, notify_first_compile
 from torchiid.core.memory import share_one_malloc_arena
 from torchiid.io.output_set import missing_folders, remove_empty_folders
 
@@ -122,28 +123,35 @@ def _worker_main(
     signal.signal(signal.SIGINT, signal.SIG_IGN if ignore_sigint else terminate)
     logging.basicConfig(level=logging.WARNING, format="torchiid: %(message)s")
     kwargs = {} if decompose_fn is None else {"decompose_fn": decompose_fn}
+    sending = threading.Lock()  # the kernels may compile on another thread of the worker
+
+    def send(message: tuple) -> None:
+        with sending:
+            conn.send(message)
+
     try:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, _SIGNALS)
         share_one_malloc_arena()  # a process of the pool's own, as the command line's
         try:
             worker_state(settings)
         except SetupError as exc:  # the parent stops the run: no image could be processed
-            conn.send(("setup_failed", str(exc)))
+            send(("setup_failed", str(exc)))
             return
-        conn.send(("ready", os.getpid()))
-        while True:
-            job = conn.recv()
-            if job is None:
-                break
-            try:
-                result = process_image(job, settings, **kwargs)
-            except InterruptedAfterCommit as done:
-                conn.send(("result", done.result))
-                break
-            conn.send(("result", result))
+        send(("ready", os.getpid()))
+        with notify_first_compile(lambda: send(("compiling", os.getpid()))):
+            while True:
+                job = conn.recv()
+                if job is None:
+                    break
+                try:
+                    result = process_image(job, settings, **kwargs)
+                except InterruptedAfterCommit as done:
+                    send(("result", done.result))
+                    break
+                send(("result", result))
     except KeyboardInterrupt:
         with contextlib.suppress(Exception):
-            conn.send(("interrupted", received[-1] if received else "SIGINT"))
+            send(("interrupted", received[-1] if received else "SIGINT"))
     except (EOFError, BrokenPipeError, ConnectionResetError):
         pass
     finally:
@@ -201,6 +209,8 @@ class WorkerPool:
         decompose_fn: the decomposition function (picklable: a module-level function);
             ``None``: :func:`torchiid.model.decompose`.
         on_retry: called with the image and how its worker died, before it is tried again.
+        on_compiling: called once, when the first worker starts compiling the CPU kernels
+            (:mod:`torchiid.core.first_compile`: the first run in a Python environment).
     """
 
     def __init__(
@@ -211,6 +221,7 @@ class WorkerPool:
         retries: int = 1,
         decompose_fn: Callable | None = None,
         on_retry: Callable[[ImageJob, str], None] | None = None,
+        on_compiling: Callable[[], None] | None = None,
     ) -> None:
         if workers < 1:
             raise TorchiidError(f"--workers must be >= 1, got {workers}")
@@ -220,6 +231,8 @@ class WorkerPool:
         self.retries = retries
         self.decompose_fn = decompose_fn
         self.on_retry = on_retry
+        self.on_compiling = on_compiling
+        self._compiling_said = False
         self._ctx = multiprocessing.get_context("spawn")
         self._workers: list[_Worker] = []
         self.deaths = 0
@@ -307,6 +320,8 @@ class WorkerPool:
                             pending -= 1
                             self._new_folders.pop(payload.index, None)
                             yield payload
+                        elif kind == "compiling":
+                            self._compiling()
                         else:
                             w.ready = True
                     if not messages or w.interrupted or not w.process.is_alive():
@@ -325,6 +340,16 @@ class WorkerPool:
             self._stop_all()
             raise
         self._stop_all()
+
+    def _compiling(self) -> None:
+        """A worker compiles the kernels: said once, whichever worker it is."""
+        if self._compiling_said:
+            return
+        self._compiling_said = True
+        if self.on_compiling is not None:
+            self.on_compiling()
+        else:
+            log.info("%s", COMPILING)
 
     def _folder(self, job: ImageJob) -> Path:
         return Path(self.settings.out, job.folder) if job.folder else Path(self.settings.out)

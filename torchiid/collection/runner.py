@@ -120,6 +120,13 @@ class Reporter(Protocol):
     def retrying(self, job: ImageJob, how: str) -> None:
         """The worker process on ``job`` died (``how``); the image is tried again."""
 
+    def compiling(self) -> None:
+        """A worker process compiles the CPU kernels (the first run in an environment).
+
+        Optional, like :meth:`retrying`; in this process the caller watches for it itself
+        (:func:`~torchiid.core.first_compile.notify_first_compile`).
+        """
+
 
 class RunInterrupted(KeyboardInterrupt):  # noqa: N818 - it is an interrupt
     """The run was interrupted; ``summary`` says what it did before."""
@@ -245,6 +252,7 @@ def run_collection(
                 retries=retries,
                 decompose_fn=decompose_fn,
                 on_retry=getattr(reporter, "retrying", None),
+                on_compiling=getattr(reporter, "compiling", None),
             )
             results = pool.run(jobs)
             busy = lambda: pool.busy  # noqa: E731

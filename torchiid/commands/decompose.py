@@ -209,6 +209,11 @@ class _Printer:
     def retrying(self, job, how: str) -> None:
         self.note(f"torchiid: note: {job.path}: its worker process died ({how}); trying it again")
 
+    def compiling(self) -> None:
+        from torchiid.core.first_compile import COMPILING
+
+        self.note(f"torchiid: note: {COMPILING}")
+
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()

@@ -3,8 +3,9 @@
 The kernels are used only where they apply (:func:`usable`): numba importable, CPU tensors of
 float32 or float64, and no autograd graph to record (the differentiable losses keep the torch
 ops). ``TORCHIID_KERNELS=torch`` in the environment turns them off, e.g. to compare the two
-paths. The first use in a Python environment compiles them (a few seconds, once: numba caches
-the machine code on disk for every later process).
+paths. The first use in a Python environment compiles them (up to a minute on 2 cores, once:
+numba caches the machine code on disk for every later process;
+:mod:`torchiid.core.first_compile` lets a run say so meanwhile).
 
 Threads: as many as torch uses (``torch.get_num_threads()``). The stencil product runs on
 numba's thread pool, one call at a time (numba's fallback threading layer aborts on
@@ -28,6 +29,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 import torch
+
+from torchiid.core.first_compile import watch_compilation
 
 __all__ = [
     "PARALLEL_WORK",
@@ -70,6 +73,7 @@ def compiled() -> tuple[ModuleType, ModuleType] | None:
         import numba
     except ImportError:  # pragma: no cover - numba is a dependency; kept for slim installs
         return None
+    watch_compilation()  # before the first kernel: a compilation is said while it runs
     try:
         from torchiid.priors import stencil_kernels
     except Exception as exc:  # pragma: no cover - e.g. no writable directory for numba's cache
