@@ -32,6 +32,7 @@ import dataclasses
 import logging
 import os
 import secrets
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
@@ -39,6 +40,7 @@ from torchiid.collection.job import ImageJob, ImageResult, error_message, proces
 from torchiid.collection.pool import remove_temporary_sets
 from torchiid.collection.settings import RunSettings, params_hash
 from torchiid.core.exceptions import TorchiidError
+from torchiid.core.first_compile import COMPILING, notify_first_compile
 
 __all__ = ["ImageTaskError", "dask_task", "run_on_dask"]
 
@@ -56,14 +58,33 @@ class ImageTaskError(RuntimeError):
 
 
 def dask_task(
-    job: ImageJob, settings: RunSettings, phash: str, decompose_fn: Callable | None = None
+    job: ImageJob,
+    settings: RunSettings,
+    phash: str,
+    decompose_fn: Callable | None = None,
+    topic: str | None = None,
 ) -> ImageResult:
-    """One image on a Dask worker (see the module notes); raises to be retried."""
+    """One image on a Dask worker (see the module notes); raises to be retried.
+
+    With ``topic``, a worker that compiles the CPU kernels for it (the first run in its Python
+    environment) logs an event of that topic on the cluster (``Worker.log_event``).
+    """
     kwargs = {} if decompose_fn is None else {"decompose_fn": decompose_fn}
-    result = process_image(job, settings, phash=phash, **kwargs)
+    with notify_first_compile(lambda: _log_compiling(topic)):
+        result = process_image(job, settings, phash=phash, **kwargs)
     if result.retryable:
         raise ImageTaskError(result.message)
     return result
+
+
+def _log_compiling(topic: str | None) -> None:
+    if topic is None:
+        return
+    from distributed import get_worker
+
+    with contextlib.suppress(ValueError):  # not on a worker (a task run by hand)
+        worker = get_worker()
+        worker.log_event(topic, {"worker": worker.address, "pid": os.getpid()})
 
 
 def _client(address: str, timeout: float):
@@ -92,6 +113,7 @@ def run_on_dask(
     in_flight: list | None = None,
     late: list | None = None,
     left_running: list | None = None,
+    on_compiling: Callable[[], None] | None = None,
 ) -> Iterator[ImageResult]:
     """Run the jobs on the cluster of ``address``; yields each result as its task ends.
 
@@ -108,6 +130,9 @@ def run_on_dask(
             the tasks that ended while it waited for the running ones (see the module notes).
         left_running: then filled with the jobs whose tasks were still running after
             :data:`STOP_GRACE` seconds (cancelled; they may still write their files).
+        on_compiling: called once (on a thread of the client), when a worker first starts
+            compiling the CPU kernels for this run's tasks (the first run in its Python
+            environment, :mod:`torchiid.core.first_compile`).
 
     Raises:
         TorchiidError: ``distributed`` is not installed or the scheduler cannot be reached.
@@ -117,8 +142,20 @@ def run_on_dask(
     client = _client(address, CONNECT_TIMEOUT if connect_timeout is None else connect_timeout)
     phash = params_hash(settings)
     token = secrets.token_hex(4)
+    topic = f"torchiid-{token}-compiling"
+    said = threading.Event()
+
+    def compiling(event: object) -> None:
+        if not said.is_set():
+            said.set()
+            if on_compiling is not None:
+                on_compiling()
+            else:
+                log.info("a worker: %s", COMPILING)
+
     futures = {}
     try:
+        client.subscribe_topic(topic, compiling)
         for job in jobs:
             job = dataclasses.replace(  # the workers may run in another folder, or elsewhere
                 job,
@@ -131,6 +168,7 @@ def run_on_dask(
                 settings,
                 phash,
                 decompose_fn,
+                topic,
                 key=f"torchiid-{token}-{job.index}",
                 retries=retries,
                 pure=False,
@@ -152,6 +190,8 @@ def run_on_dask(
             if futures:  # interrupted (or closed early): see the module notes
                 _stop(client, futures, retries, late, left_running)
         finally:
+            with contextlib.suppress(Exception):
+                client.unsubscribe_topic(topic)
             with contextlib.suppress(Exception):
                 client.close()
 

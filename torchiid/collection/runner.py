@@ -239,6 +239,7 @@ def run_collection(
                 decompose_fn=decompose_fn,
                 late=finished,
                 left_running=left,
+                on_compiling=getattr(reporter, "compiling", None),
             )
             # on an interrupt, the tasks that ended while it waited are in `finished`; those
             # still running are in `left`: cancelled, but they may still write their files
