@@ -276,3 +276,20 @@ def test_no_inputs_and_conflicting_options_are_usage_errors(photos, tmp_path, ca
     assert main([*argv, "--workers", "0"]) == 2
     assert "--workers must be >= 1" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("how", ["folder", "glob"])
+def test_an_input_folder_that_is_the_output_folder_is_run_again_as_done(photos, tmp_path, how):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    (folder / "cat.png").write_bytes((photos / "cat.png").read_bytes())
+    source = str(folder) if how == "folder" else str(folder / "*.png")
+    argv = ["decompose", source, "-o", str(folder), *FAST]
+    assert main(argv) == 0
+    assert (folder / "cat-reflectance.png").is_file() and (folder / "cat-shading.exr").is_file()
+    made = sorted(p.name for p in folder.iterdir())
+    # again: its outputs are not new inputs, and the photo is done
+    assert main(argv) == 0
+    assert sorted(p.name for p in folder.iterdir()) == made
+    records = [json.loads(line) for line in (folder / "manifest.jsonl").read_text().splitlines()]
+    assert [r["key"] for r in records] == ["cat"]

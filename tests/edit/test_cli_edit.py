@@ -203,10 +203,10 @@ def test_rho_rebuilt_from_sigma_is_the_decomposition_s(files, decomposed):
     d, _ = files
     _, with_rho = decomposed
     image = load_image(d / "m.png").image
-    saved = _load_saved(with_rho, "m", image, need_stage1=True)
+    saved = _load_saved(with_rho, d / "m.png", image, need_stage1=True)
     (with_rho / "m-rho.exr").rename(with_rho / "m-rho.exr.kept")
     try:
-        rebuilt = _load_saved(with_rho, "m", image, need_stage1=True)
+        rebuilt = _load_saved(with_rho, d / "m.png", image, need_stage1=True)
     finally:
         (with_rho / "m-rho.exr.kept").rename(with_rho / "m-rho.exr")
     torch.testing.assert_close(rebuilt[3], saved[3], rtol=1e-5, atol=1e-6)
@@ -239,3 +239,25 @@ def test_negative_values_set_to_0_are_a_note_in_edit_too(tmp_path, capsys):
         and "render.npy: 1 negative value (down to -0.002) set to 0" in err
     )
     assert "InputWarning" not in err and "warnings.warn" not in err
+
+
+def test_a_saved_decomposition_of_another_file_is_refused(files, decomposed, tmp_path, capsys):
+    """The same name and size, another picture: the folder's -info.json tells them apart."""
+    d, edit_out = files
+    plain, _ = decomposed
+    other = tmp_path / "in" / "m.png"
+    other.parent.mkdir()
+    save_image(other, load_image(d / "m.png").image.flip(-2), "srgb8")  # upside down
+    for folder in (plain, edit_out):  # written by `decompose`, and by `edit` without --from
+        args = ["edit", "merge", str(other), "--from", str(folder), "-o", str(tmp_path / "x")]
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert f"{folder}: its m-* layers are the decomposition of another file than {other}" in err
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert not (tmp_path / "x").exists()
+    # the photo itself, copied elsewhere, is the same file: its decomposition serves it
+    same = tmp_path / "copy" / "m.png"
+    same.parent.mkdir()
+    same.write_bytes((d / "m.png").read_bytes())
+    args = ["edit", "merge", str(same), "--from", str(plain), "-o", str(tmp_path / "y")]
+    assert main(args) == 0

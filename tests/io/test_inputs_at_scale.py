@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -163,6 +164,29 @@ def test_globs_leave_out_the_output_folder(library, monkeypatch):
     assert "out/cover-reflectance" in _keys(list_inputs(["library/**/*.png"]))
     # a glob whose fixed part is the output folder names its files on purpose
     assert _keys(list_inputs(["library/out/*.png"], exclude=[out])) == ["cover-reflectance"]
+
+
+def test_files_to_skip_are_left_out_of_walks_and_globs_but_not_named_ones(library, monkeypatch):
+    monkeypatch.chdir(library.parent)
+    written = photo(library / "cover-reflectance.png")  # an earlier run's, into the same folder
+    skip = {os.path.abspath(written)}
+    assert _keys(list_inputs([library], skip=skip)) == ["cover"]
+    assert _keys(list_inputs([Path("library")], recursive=True, skip=skip))[0] == "cover"
+    assert _keys(list_inputs(["library/*.png"], skip=skip)) == ["cover"]
+    assert _keys(list_inputs([written], skip=skip)) == ["cover-reflectance"]  # named on its own
+    assert sorted(_keys(list_inputs([library]))) == ["cover", "cover-reflectance"]
+
+
+def test_walks_into_says_whether_a_folder_is_listed(library, monkeypatch):
+    from torchiid.io.inputs import walks_into
+
+    monkeypatch.chdir(library.parent)
+    out = library / "out"
+    out.mkdir()
+    assert walks_into([library], library) and walks_into(["library/*.png"], library)
+    assert walks_into(["library/out/**/*.png"], out) and walks_into([out], library)
+    assert not walks_into([library], out)  # from above: the output folder is excluded
+    assert not walks_into(["library/**/*.png", library / "cover.png"], out)
 
 
 def test_names_that_differ_only_in_case_are_refused(tmp_path):

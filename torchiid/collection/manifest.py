@@ -126,6 +126,22 @@ class Manifest:
         """The last record of ``key``, or ``None``."""
         return self.records.get(key)
 
+    def written_files(self, out: str | os.PathLike) -> set[str]:
+        """Absolute paths of the files that the records say were written into ``out``.
+
+        The outputs of the images done: a folder that is both an input and the output folder
+        (``torchiid decompose photos -o photos``) would otherwise give them as new inputs
+        on the next run (:func:`torchiid.io.inputs.list_inputs`, ``skip``).
+        """
+        base = os.path.abspath(out)
+        return {
+            os.path.join(base, name)
+            for record in self.records.values()
+            if record.get("status") == "done"
+            for name in record.get("files") or ()
+            if isinstance(name, str)
+        }
+
 
 class ManifestWriter:
     """Appends records to the manifest, one flushed and synced line per image.

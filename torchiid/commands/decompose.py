@@ -249,8 +249,9 @@ def run(args: argparse.Namespace) -> int:
     their files).
     """
     from torchiid.collection import RunInterrupted, run_collection
+    from torchiid.collection.manifest import MANIFEST_NAME, Manifest
     from torchiid.core.exceptions import TorchiidError
-    from torchiid.io.inputs import list_inputs, unique_keys
+    from torchiid.io.inputs import list_inputs, unique_keys, walks_into
     from torchiid.io.output_set import check_output_folder
 
     params = params_from_args(args)
@@ -272,9 +273,19 @@ def run(args: argparse.Namespace) -> int:
     lists = getattr(args, "list", None) or []
     if not args.inputs and not lists:
         raise TorchiidError("no inputs: name image files, folders or globs, or --list FILE")
+    written: set[str] = set()  # what a run wrote into an input folder is not an input
+    if walks_into(args.inputs, out):
+        try:
+            written = Manifest(out / MANIFEST_NAME).written_files(out)
+        except OSError:  # an unreadable manifest: the run says why, before any image
+            pass
     items = unique_keys(
         list_inputs(
-            args.inputs, recursive=getattr(args, "recursive", False), lists=lists, exclude=[out]
+            args.inputs,
+            recursive=getattr(args, "recursive", False),
+            lists=lists,
+            exclude=[out],
+            skip=written,
         )
     )
     settings = _settings(args, params, out)

@@ -128,23 +128,34 @@ def _read_exr(path: Path) -> torch.Tensor:
     return x[None] if x.ndim == 2 else x.permute(2, 0, 1)
 
 
-def _load_saved(folder: Path, stem: str, image: torch.Tensor, need_stage1: bool) -> tuple:
+def _load_saved(folder: Path, source: Path, image: torch.Tensor, need_stage1: bool) -> tuple:
     """R, S, σ, ρ (``None`` without ``-sigma.exr``) of a saved decomposition, ``(1, C, H, W)``.
+
+    ``source`` is the input file; its stem names the layers in ``folder``.
 
     Raises:
         TorchiidError: a file is missing, or σ is missing and ``need_stage1``.
-        ImageError: a layer has another size than ``image``.
+        ImageError: the folder's ``-info.json`` records another input file (another SHA-256)
+            than ``source``, or a layer has another size than ``image``.
     """
     import torch
 
+    from torchiid.collection.settings import file_sha256
     from torchiid.core.exceptions import ImageError, TorchiidError
     from torchiid.io import load_image
 
+    stem = source.stem
     r_path = folder / f"{stem}-reflectance-linear16.png"
     s_path = folder / f"{stem}-shading.exr"
     for path in (r_path, s_path):
         if not path.is_file():
             raise TorchiidError(f"{path}: not found (--from needs the files of `decompose`)")
+    if _recorded_sha256(folder / f"{stem}-info.json") not in (None, file_sha256(source)):
+        raise ImageError(
+            f"{folder}: its {stem}-* layers are the decomposition of another file than "
+            f"{source} (their {stem}-info.json records another SHA-256); decompose {source} "
+            "itself, or pass --from the folder of its own decomposition"
+        )
     r = load_image(r_path, linear=True, alpha="ignore").image
     s = _read_exr(s_path)
     sig_path, rho_path = folder / f"{stem}-sigma.exr", folder / f"{stem}-rho.exr"
@@ -165,6 +176,20 @@ def _load_saved(folder: Path, stem: str, image: torch.Tensor, need_stage1: bool)
     if sigma is not None and rho is None:  # ρ = I / σ, as decompose made it
         rho = torch.where(sigma > 0, image / sigma.clamp_min(1e-30), 0.0).clamp_(0, 1)
     return tuple(None if x is None else x[None] for x in (r, s, sigma, rho))
+
+
+def _recorded_sha256(info_path: Path) -> str | None:
+    """The input's SHA-256 that a saved ``-info.json`` records (``None``: none, or unreadable).
+
+    Files written before torchiid recorded it, or by hand, cannot be checked and are taken as
+    they are.
+    """
+    try:
+        info = json.loads(info_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    sha = info.get("input_sha256") if isinstance(info, dict) else None
+    return sha if isinstance(sha, str) else None
 
 
 def _output_names(args: argparse.Namespace, stem: str, tag: str, decomposed: bool) -> list[str]:
@@ -272,6 +297,7 @@ def run(args: argparse.Namespace) -> int:
     """Run ``torchiid edit``; returns the exit status (errors raise TorchiidError)."""
     from torchiid import edit
     from torchiid._version import __version__
+    from torchiid.collection.settings import file_sha256
     from torchiid.core.device import resolve_device
     from torchiid.core.exceptions import ParameterError
     from torchiid.io import load_image, load_mask, save_image
@@ -319,7 +345,7 @@ def run(args: argparse.Namespace) -> int:
         result = _decompose(args, batch, params)
         r, s, sigma, rho = result.reflectance, result.shading, result.sigma, result.rho
     else:
-        saved = _load_saved(args.from_dir, stem, image, needs_stage1)
+        saved = _load_saved(args.from_dir, args.input, image, needs_stage1)
         r, s, sigma, rho = (None if x is None else x.to(device) for x in saved)
     seconds_decompose = time.perf_counter() - t0
     result_img, layers, merged = _apply(args, batch, r, s, sigma, rho, mask, texture)
@@ -362,6 +388,7 @@ def run(args: argparse.Namespace) -> int:
                 shading_white=float(result.shading_white[0]),
                 info={
                     "input": str(args.input),
+                    "input_sha256": file_sha256(args.input),
                     "method": "semantic",
                     "written_by": "edit",
                     "converged": result.converged,

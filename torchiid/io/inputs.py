@@ -18,7 +18,7 @@ from __future__ import annotations
 import csv
 import glob
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,6 +31,7 @@ __all__ = [
     "list_inputs",
     "read_list_file",
     "unique_keys",
+    "walks_into",
 ]
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".exr", ".npy"}
@@ -89,8 +90,16 @@ def _same_folder(a: os.DirEntry, excluded: set[tuple[int, int]]) -> bool:
     return (st.st_dev, st.st_ino) in excluded
 
 
-def _walk(folder: Path, recursive: bool, excluded: set[tuple[int, int]]) -> Iterable[Path]:
-    """Image files of ``folder`` (sorted by name), then those of its subfolders (if recursive)."""
+def _walk(
+    folder: Path,
+    recursive: bool,
+    excluded: set[tuple[int, int]],
+    skip: Collection[str] = frozenset(),
+) -> Iterable[Path]:
+    """Image files of ``folder`` (sorted by name), then those of its subfolders (if recursive).
+
+    Files whose absolute path is in ``skip`` are left out.
+    """
     try:
         entries = sorted(os.scandir(folder), key=lambda e: e.name)
     except OSError as exc:
@@ -102,14 +111,16 @@ def _walk(folder: Path, recursive: bool, excluded: set[tuple[int, int]]) -> Iter
                 # hidden files (macOS's ._IMG.jpg resource forks, editors' backups) are not
                 # photos of the folder; a hidden file named on its own is still taken
                 if _is_image(entry.name) and not entry.name.startswith("."):
-                    yield Path(folder, entry.name)
+                    path = Path(folder, entry.name)
+                    if not skip or os.path.abspath(path) not in skip:
+                        yield path
             elif recursive and entry.is_dir(follow_symlinks=False):
                 if not entry.name.startswith(".") and not _same_folder(entry, excluded):
                     subfolders.append(Path(folder, entry.name))
         except OSError:
             continue
     for sub in subfolders:
-        yield from _walk(sub, recursive, excluded)
+        yield from _walk(sub, recursive, excluded, skip)
 
 
 def _glob_root(pattern: str) -> Path:
@@ -144,13 +155,20 @@ def _below_excluded(
     return False
 
 
-def _expand_glob(pattern: str, excluded: set[tuple[int, int]] | None = None) -> list[InputItem]:
+def _expand_glob(
+    pattern: str,
+    excluded: set[tuple[int, int]] | None = None,
+    skip: Collection[str] = frozenset(),
+) -> list[InputItem]:
     root = _glob_root(pattern)
     seen: dict[str, bool] = {}
     found = sorted(
         Path(p)
         for p in glob.glob(pattern, recursive=True)
-        if _is_image(p) and os.path.isfile(p) and not _below_excluded(Path(p), root, excluded, seen)
+        if _is_image(p)
+        and os.path.isfile(p)
+        and not (skip and os.path.abspath(p) in skip)
+        and not _below_excluded(Path(p), root, excluded, seen)
     )
     if not found:
         raise TorchiidError(f"{pattern}: no image file matches this pattern")
@@ -224,6 +242,7 @@ def list_inputs(
     recursive: bool = False,
     lists: Sequence[Path] = (),
     exclude: Sequence[Path] = (),
+    skip: Collection[str] = frozenset(),
 ) -> list[InputItem]:
     """Every image named by files, folders, globs and list files, with its output key.
 
@@ -237,6 +256,10 @@ def list_inputs(
             are not taken as inputs). Files named on their own or in a list file are always
             taken, and so are the images of a folder, or a glob's fixed part, that is itself
             excluded.
+        skip: absolute paths of files never taken from a folder walk or a glob: the outputs
+            that the output folder's manifest records
+            (:meth:`~torchiid.collection.manifest.Manifest.written_files`), for an output
+            folder that is also an input folder. Files named on their own are still taken.
 
     Returns:
         The images in the order given, each folder's and glob's images sorted by path.
@@ -257,11 +280,11 @@ def list_inputs(
     for name in inputs:
         p = Path(name)
         if p.is_dir():
-            found = list(_walk(p, recursive, excluded))
+            found = list(_walk(p, recursive, excluded, skip))
             if not found:
                 where = " or its subfolders" if recursive else ""
                 hint = ""
-                if not recursive and any(_walk(p, True, excluded)):
+                if not recursive and any(_walk(p, True, excluded, skip)):
                     hint = "; its subfolders do: -r (recursive=True in Python) takes them"
                 raise TorchiidError(
                     f"{p}: directory{where} holds no image files "
@@ -269,12 +292,33 @@ def list_inputs(
                 )
             out.extend(InputItem(f, _key(f, p)) for f in found)
         elif not os.path.lexists(p) and _MAGIC & set(str(name)):
-            out.extend(_expand_glob(str(name), excluded))
+            out.extend(_expand_glob(str(name), excluded, skip))
         else:
             out.append(InputItem(p, p.stem))
     for list_file in lists:
         out.extend(read_list_file(Path(list_file)))
     return out
+
+
+def walks_into(inputs: Sequence[Path | str], folder: Path) -> bool:
+    """Whether :func:`list_inputs` walks ``folder`` or a folder inside it for these inputs.
+
+    That is: a folder named is ``folder`` or lies inside it, or a glob's fixed part does. (A
+    walk from above leaves ``folder`` out when it is given as ``exclude``.)
+    """
+    target = os.path.realpath(folder)
+    for name in inputs:
+        p = Path(name)
+        if p.is_dir():
+            walked = p
+        elif not os.path.lexists(p) and _MAGIC & set(str(name)):
+            walked = _glob_root(str(name))
+        else:
+            continue
+        real = os.path.realpath(walked)
+        if real == target or real.startswith(target.rstrip(os.sep) + os.sep):
+            return True
+    return False
 
 
 def _same_file(a: Path, b: Path) -> bool:
