@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pytest
 from skimage import data
 
@@ -89,11 +90,9 @@ def test_api_pages_cover_every_public_name():
 
 
 def _code_after(page: Path, heading: str) -> str:
+    """The first Python block of ``page`` after the text ``heading``."""
     text = page.read_text()
-    start = text.index(heading)
-    match = re.search(r"```python\n(.*?)```", text[start:], re.S)
-    assert match, f"no Python block after {heading!r} in {page}"
-    return match.group(1)
+    return _code_after_text(text[text.index(heading) :])
 
 
 def test_rebuild_snippet_runs_on_the_files_decompose_writes(tmp_path, monkeypatch):
@@ -105,7 +104,21 @@ def test_rebuild_snippet_runs_on_the_files_decompose_writes(tmp_path, monkeypatc
     monkeypatch.chdir(tmp_path)
     argv = ["decompose", "photo.png", "-o", "out/", "--iterations", "1", "--no-progress"]
     assert main(argv) == 0
-    exec(compile(code, "docs/guide/outputs.md", "exec"), {"__name__": "snippet"})
+    rebuilt: dict = {"__name__": "snippet"}
+    exec(compile(code, "docs/guide/outputs.md", "exec"), rebuilt)
+    # the next block reads the EXR without torchiid: the same shading and view factor
+    code = _code_after(DOCS / "guide" / "outputs.md", "Without torchiid, the EXR opens")
+    plain: dict = {"__name__": "snippet"}
+    exec(compile(code, "docs/guide/outputs.md", "exec"), plain)
+    np.testing.assert_array_equal(plain["S"], rebuilt["S"])
+    np.testing.assert_allclose(np.ravel(plain["white"])[0], rebuilt["white"], rtol=1e-6)
+
+
+def _code_after_text(text: str) -> str:
+    """The first Python block of ``text``."""
+    match = re.search(r"```python\n(.*?)```", text, re.S)
+    assert match, "no Python block in the text"
+    return match.group(1)
 
 
 @pytest.mark.parametrize("name", ["README.md", "docs/index.md"])

@@ -26,7 +26,8 @@ file                                      what it is
 ``photo-confidence.png``                  with ``ExtraOutputs(confidence=...)``: 8-bit gray,
                                           255 where the pixel's colour is trusted, 0 where it
                                           is dark or clipped (no information, shading
-                                          continued smoothly)
+                                          continued smoothly), in between on the ramps of
+                                          :func:`~torchiid.priors.shading_terms.pixel_confidence`
 ``photo-sigma.exr``                       Stage 1's last shading ``σ``, float32 linear OpenEXR
                                           (``decompose`` adds it to the set; ``ρ = I / σ``)
 ========================================  ====================================================
@@ -97,7 +98,8 @@ DESCRIPTIONS = {
     "params.json": "every parameter used (readable with --params)",
     "reflectance.npy": "reflectance R, float32 linear (H, W, 3)",
     "shading.npy": "shading S, float32 linear (H, W)",
-    "confidence.png": "pixel confidence, 8-bit gray: 255 trusted, 0 dark or clipped",
+    "confidence.png": "pixel confidence, 8-bit gray: 255 trusted, 0 dark or clipped, "
+    "in between on the ramps near dark_level and clip_level",
 }
 
 LayerFiles = dict[str, Path]
