@@ -176,7 +176,10 @@ def test_working_resolution_brings_layers_back_to_full_size():
 
 
 def test_working_resolution_below_patch_size_is_rejected():
-    with pytest.raises(ParameterError, match="smaller than the 60 px patches"):
+    # 128x96 at 64 px is 64x48: the longer side must be 80 for 60 px on the shorter one
+    with pytest.raises(ParameterError, match=r"working resolution 64x48 \(--max-side 64\) is "
+                       r"smaller than the 60 px patches; --max-side 80 or more, or 0 for the "
+                       r"full resolution \(max_side in Python\)$"):  # fmt: skip
         decompose(mondrian(96, 128).image, FAST.replace(max_side=64))
 
 

@@ -30,3 +30,20 @@ def test_run_options_name_what_is_wrong_with_a_number(capsys, argv, message):
         _parser().parse_args(argv)
     assert stop.value.code == 2
     assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "message"),
+    [
+        ("--iterations", "0", "torchiid: error: --iterations must be >= 1, got 0"),
+        ("--max-side", "-5", "torchiid: error: --max-side must be >= 0 (0: the full resolution), "
+         "got -5"),
+    ],
+)  # fmt: skip
+def test_the_method_options_are_named_as_typed(tmp_path, capsys, option, value, message):
+    from torchiid.cli import main
+
+    argv = ["decompose", str(tmp_path / "any.png"), "-o", str(tmp_path / "out"), option, value]
+    assert main(argv) == 2
+    assert capsys.readouterr().err.strip() == message
+    assert not (tmp_path / "out").exists()

@@ -14,8 +14,8 @@ from torchiid.synthetic import mondrian
     [
         ("--hue", "nan", "argument --hue: not a finite number"),
         ("--strength", "inf", "argument --strength: not a finite number"),
-        ("--blur", "1e9", "blur must be <= "),
-        ("--feather", "-3", "feather must be >= 0"),
+        ("--blur", "1e9", "torchiid: error: --blur must be <= "),
+        ("--feather", "-3", "torchiid: error: --feather must be >= 0"),
     ],
 )
 def test_numbers_out_of_range_are_usage_errors(files, tmp_path, capsys, option, value, message):
@@ -38,10 +38,13 @@ def test_numbers_out_of_range_are_usage_errors(files, tmp_path, capsys, option, 
 @pytest.mark.parametrize(
     ("extra", "message"),
     [
-        (["merge", "--blur", "1e9"], "blur must be <= 80"),
-        (["soften-shadows", "--mask", "MASK", "--feather", "-1"], "feather must be >= 0"),
-        (["illumination-intensity", "--strength", "-5"], "strength must be >= 0"),
-        (["replace-albedo", "--mask", "MASK", "--texture", "TEX", "--scale", "1e5"], "at most 40"),
+        (["merge", "--blur", "1e9"], "--blur must be <= 80"),
+        (["soften-shadows", "--mask", "MASK", "--feather", "-1"], "--feather must be >= 0"),
+        (["illumination-intensity", "--strength", "-5"], "--strength must be >= 0"),
+        (
+            ["replace-albedo", "--mask", "MASK", "--texture", "TEX", "--scale", "1e5"],
+            "--scale must be at most 40",
+        ),
     ],
 )
 def test_numbers_are_checked_before_the_decomposition(

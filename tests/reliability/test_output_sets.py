@@ -299,7 +299,7 @@ def test_sizes_are_width_x_height_everywhere(tmp_path):
     with pytest.raises(ImageError, match="mask is 30x40 px but the image is 80x64 px"):
         load_mask(tmp_path / "mask.png", shape=(64, 80))
     p = Parameters().replace(max_side=80)
-    with pytest.raises(ParameterError, match=r"working resolution 80x16 \(max_side=80\)"):
+    with pytest.raises(ParameterError, match=r"working resolution 80x16 \(--max-side 80\)"):
         torchiid.decompose(torch.rand(1, 3, 60, 300), p)
 
 

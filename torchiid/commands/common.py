@@ -106,8 +106,7 @@ def run_options() -> argparse.ArgumentParser:
         "--threads",
         type=_threads,
         metavar="N",
-        help="CPU threads (torch and OpenMP; default: every core; with --workers: per worker, "
-        "default cores / workers)",
+        help="CPU threads (torch and OpenMP; default: every core)",
     )
     group.add_argument(
         "--memory-limit",
@@ -140,9 +139,23 @@ def add_parameter_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--params", type=Path, help="JSON file of parameters (over the preset)")
     p.add_argument("--variant", help="ablation variant v1..v7 or baseline1..baseline3")
-    p.add_argument("--iterations", type=int, help="alternations k (overrides the preset)")
+    from torchiid.params import PRESETS, Parameters
+
+    presets = [Parameters.preset(name) for name in PRESETS]
+    ks = sorted({p.iterations for p in presets})
+    sides = sorted({p.output.max_side for p in presets})
     p.add_argument(
-        "--max-side", type=int, help="working resolution: longer side in px (0 = full resolution)"
+        "--iterations",
+        type=int,
+        metavar="K",
+        help=f"alternations k (default: the preset's, {' or '.join(map(str, ks))})",
+    )
+    p.add_argument(
+        "--max-side",
+        type=int,
+        metavar="PX",
+        help="working resolution: the longer side in px (default: the preset's, "
+        f"{' or '.join(map(str, sides))}; 0: the full resolution)",
     )
 
 
@@ -171,6 +184,10 @@ def params_from_args(args: argparse.Namespace) -> Parameters:
             raise ParameterError(f"--iterations must be >= 1, got {args.iterations}")
         params = params.replace(iterations=args.iterations)
     if args.max_side is not None:
+        if args.max_side < 0:
+            raise ParameterError(
+                f"--max-side must be >= 0 (0: the full resolution), got {args.max_side}"
+            )
         params = params.replace(max_side=args.max_side)
     return params
 

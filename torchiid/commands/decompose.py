@@ -29,7 +29,7 @@ Split photos into reflectance and shading. For photo.jpg it writes into the outp
 photo-reflectance.png and photo-shading.png (8-bit sRGB, viewable), photo-preview.png,
 photo-reflectance-linear16.png and photo-shading.exr (the exact layers, linear),
 photo-sigma.exr (the Stage 1 shading, for `torchiid edit --from`), photo-info.json and
-photo-params.json; and out/manifest.jsonl, which makes a rerun skip what is done."""
+photo-params.json; and manifest.jsonl, which makes a rerun skip what is done."""
 
 
 #: the options that are :class:`~torchiid.collection.RunSettings` fields of the same name
@@ -50,7 +50,7 @@ _SETTINGS_OPTIONS = (
 #: the switches that write more files, in the order ``--help`` lists them
 _SAVE_OPTIONS = {
     "--save-confidence": "also write <stem>-confidence.png (255: trusted colour, 0: dark or "
-    "clipped pixel)",
+    "clipped pixel, in between on the ramps near them)",
     "--save-stage1": "also write the last Stage 1 reflectance <stem>-rho.exr (float, linear; "
     "`torchiid edit --from` rebuilds it from the photo and <stem>-sigma.exr otherwise)",
     "--save-npy": "also write float32 linear .npy arrays of reflectance and shading",
@@ -109,7 +109,8 @@ def add_arguments(d: argparse.ArgumentParser) -> None:
         type=int,
         metavar="N",
         help="run N worker processes on this machine, each with its share of the cores "
-        "(default: one image at a time in this process)",
+        "(--threads: each worker's, default cores / N; default: one image at a time in this "
+        "process)",
     )
     d.add_argument(
         "--dask-scheduler",

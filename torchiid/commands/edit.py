@@ -36,7 +36,7 @@ __all__ = ["COMBINE", "DESCRIPTION", "OPERATIONS", "add_arguments", "run"]
 DESCRIPTION = (
     "Edit a photo through its reflectance and shading. Decomposes INPUT, or reuses the files "
     "of a saved decomposition (--from DIR: a folder written by `torchiid decompose` or "
-    "`torchiid edit`), and writes the result and the edited layers into OUT_DIR."
+    "`torchiid edit`), and writes the result and the edited layers into the output folder (-o)."
 )
 
 #: operation -> needs a mask, needs the Stage 1 layers
@@ -83,35 +83,83 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "is defined from both stages and always uses them)",
     )
     p.add_argument(
-        "--blur", type=finite_float, help="Gaussian sigma in px of the merge's residue filter"
+        "--blur",
+        type=finite_float,
+        help="Gaussian sigma in px of the merge's residue filter (default: 1%% of the longer "
+        "side, at least 1)",
     )
-    p.add_argument("--tint", default="red", help="illumination-colour: name, R,G,B or #rrggbb")
+    p.add_argument(
+        "--tint", default="red", help="illumination-colour: name, R,G,B or #rrggbb (default red)"
+    )
     p.add_argument(
         "--strength", type=finite_float, help="illumination-colour (default 1), -intensity (0.5)"
     )
-    p.add_argument("--percentile", type=finite_float, default=0.95, help="light regions' quantile")
+    p.add_argument(
+        "--percentile",
+        type=finite_float,
+        default=0.95,
+        help="illumination-colour: the shading's quantile that marks the light regions "
+        "(default %(default)s)",
+    )
     p.add_argument(
         "--radius",
         type=finite_float,
         default=0.35,
-        help="tint fall-off, fraction of the longer side",
+        help="illumination-colour: the tint's fall-off, a fraction of the longer side "
+        "(default %(default)s)",
     )
-    p.add_argument("--combine", default="mean", choices=COMBINE, help="how E1 and E2 combine")
-    p.add_argument("--flatten", default="mean", choices=["mean", "median"])
+    p.add_argument(
+        "--combine",
+        default="mean",
+        choices=COMBINE,
+        help="illumination-intensity: how E1 and E2 combine (default %(default)s)",
+    )
+    p.add_argument(
+        "--flatten",
+        default="mean",
+        choices=["mean", "median"],
+        help="remove-texture: the region's one colour, the mean or the median of its "
+        "reflectance (default %(default)s)",
+    )
     p.add_argument("--texture", type=Path, help="replace-albedo: texture image")
-    p.add_argument("--fit", default="tile", choices=["tile", "stretch"])
     p.add_argument(
-        "--scale", type=finite_float, default=1.0, help="replace-albedo: tile size factor"
+        "--fit",
+        default="tile",
+        choices=["tile", "stretch"],
+        help="replace-albedo: tile the texture from the region's top-left corner (sized by "
+        "--scale) or stretch it over the region's bounding box (default %(default)s)",
     )
     p.add_argument(
-        "--hue", type=finite_float, default=0.0, help="recolour: hue rotation in degrees"
+        "--scale",
+        type=finite_float,
+        default=1.0,
+        help="replace-albedo: tile size factor (default %(default)s)",
     )
-    p.add_argument("--chroma", type=finite_float, default=1.0, help="recolour: chroma factor")
+    p.add_argument(
+        "--hue",
+        type=finite_float,
+        default=0.0,
+        help="recolour: hue rotation in degrees (default %(default)s)",
+    )
+    p.add_argument(
+        "--chroma",
+        type=finite_float,
+        default=1.0,
+        help="recolour: chroma factor (default %(default)s)",
+    )
     p.add_argument("--colour", help="recolour: target colour of the region")
     p.add_argument(
-        "--amount", type=finite_float, default=0.5, help="soften-shadows: in [-10, 1]; < 0 hardens"
+        "--amount",
+        type=finite_float,
+        default=0.5,
+        help="soften-shadows: in [-10, 1]; < 0 hardens (default %(default)s)",
     )
-    p.add_argument("--feather", type=finite_float, default=0.0, help="soften-shadows: mask edge px")
+    p.add_argument(
+        "--feather",
+        type=finite_float,
+        default=0.0,
+        help="soften-shadows: mask edge blur in px (default %(default)s)",
+    )
     add_parameter_options(p)
     add_overwrite_and_linear(p)
 
@@ -227,7 +275,7 @@ def _check_numbers(args: argparse.Namespace, image: Any, texture: Any) -> None:
         image, blur=args.blur, feather=args.feather, strength=args.strength,
         intensity=args.operation == "illumination-intensity", hue=args.hue, chroma=args.chroma,
         amount=args.amount, percentile=args.percentile, radius=args.radius, scale=args.scale,
-        texture=texture if args.fit == "tile" else None,
+        texture=texture if args.fit == "tile" else None, prefix="--",
     )  # fmt: skip
 
 

@@ -23,7 +23,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", type=Path, help="an image file")
     p.add_argument("-o", "--output", type=Path, required=True, help="output directory")
     p.add_argument(
-        "--mode", default="shared", choices=["shared", "crop"], help="patch feature mode"
+        "--mode",
+        default="shared",
+        choices=["shared", "crop"],
+        help="patch features: shared (one CNN pass over the whole image, pooled per patch; "
+        "the default) or crop (each patch resized and run on its own, the paper's protocol)",
     )
     add_overwrite_and_linear(p)
 

@@ -86,11 +86,17 @@ def working_inputs(
         check_memory(big_h, big_w, params, image.shape[0], **flags)
     size = working_size(big_h, big_w, params.output.max_side)
     img, msk = _downsampled(image, mask, size)
-    if min(size) < params.features.patch_size:
+    patch = params.features.patch_size
+    if min(size) < patch:
+        needed = -(-patch * max(big_h, big_w) // min(big_h, big_w))  # the longer side for it
+        fix = (
+            f"--max-side {needed} or more, or 0 for the full resolution (max_side in Python)"
+            if needed <= max(big_h, big_w)
+            else "the photo is too narrow for them at any working resolution"
+        )
         raise ParameterError(
-            f"working resolution {size[1]}x{size[0]} (max_side={params.output.max_side}) is "
-            f"smaller than the {params.features.patch_size} px patches; raise max_side or "
-            "lower patch_size"
+            f"working resolution {size[1]}x{size[0]} (--max-side {params.output.max_side}) is "
+            f"smaller than the {patch} px patches; {fix}"
         )
     s_init = z_init = None
     if init is not None:
