@@ -501,6 +501,7 @@ def test_the_first_compilation_of_the_kernels_is_a_note_above_the_bar(
         return real(*args, **kwargs)
 
     monkeypatch.setattr(model, "decompose", compiling)
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # a terminal: the bar is drawn
     argv = ["decompose", str(photo / "cat.png"), "--iterations", "1"]
     assert main([*argv, "-o", str(tmp_path / "a")]) == 0
     err = capsys.readouterr().err

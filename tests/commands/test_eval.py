@@ -1,5 +1,6 @@
 import csv
 import json
+import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -424,9 +425,13 @@ def test_bad_options(tmp_path):
 def test_default_output_dir_and_progress(tmp_path, monkeypatch, capsys):
     root = _fake_mit(tmp_path / "mit", names=("obj0",))
     monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # a terminal: the bar is drawn
     assert _run(["mit", root, "--method", "s=i"]) == 0
     assert (tmp_path / "eval-mit-s=i" / "results.csv").is_file()
     assert "eval mit" in capsys.readouterr().err  # the tqdm bar
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: False)  # a log: no bar
+    assert _run(["mit", root, "--method", "s=i", "-o", tmp_path / "again"]) == 0
+    assert "eval mit" not in capsys.readouterr().err
 
 
 def test_ids_file_selects_and_orders(tmp_path):

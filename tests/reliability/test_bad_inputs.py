@@ -17,12 +17,16 @@ the signal lands in its computation.
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
+import pty
 import signal
+import struct
 import subprocess
 import sys
 import tempfile
+import termios
 from pathlib import Path
 
 import cv2
@@ -248,7 +252,7 @@ def batch_a(tmp_path_factory):
         (out / name).write_bytes(payload)
     args = [inputs / n for n in BATCH_A if "/" not in n and n != "missing.png"]
     args += [root / "missing.png", folder]
-    run = run_cli(["decompose", *args, "-o", out, *FAST], cwd=root)  # progress bar on
+    run = run_cli(["decompose", *args, "-o", out, *FAST], cwd=root)  # stderr a pipe: no bar
     return run, root, out, old
 
 
@@ -292,12 +296,16 @@ def test_batch_a_leaves_no_temporary_files(batch_a):
     assert sorted(p.name for p in root.iterdir()) == ["folder", "in", "out"]
 
 
-def test_batch_a_error_lines_are_not_written_into_the_progress_bar(batch_a):
+def test_batch_a_writes_lines_into_a_log_not_a_progress_bar(batch_a):
     run, *_ = batch_a
-    assert "images:" in run.stderr  # the bar was on
-    for line in run.stderr.split("\n"):
-        if "torchiid: error:" in line:  # the bar is cleared (\r) before the message
-            assert line.split("\r")[-1].startswith("torchiid: error:"), repr(line)
+    assert "images:" not in run.stderr and "%|" not in run.stderr  # stderr is a pipe: no bar
+    lines = run.stderr.splitlines()
+    assert any(line.startswith("torchiid: error:") for line in lines)
+    for line in lines:
+        if "torchiid: error:" in line:
+            assert line.startswith("torchiid: error:"), repr(line)
+    done = [line for line in lines if " -> " in line]  # a line per image done, in its place
+    assert done and all(" of " in line and "images/minute" in line for line in done)
 
 
 def test_batch_a_transparent_pixels_are_outside_the_mask(batch_a):
@@ -575,23 +583,34 @@ def test_interrupt_during_a_computation_leaves_nothing_of_that_image(tmp_path):
     _write(tmp_path / "b_slow.png", _photo(480, 360))  # about 3 s at 5 iterations, 1 thread
     out = tmp_path / "out"
     args = ["decompose", "a_quick.png", "b_slow.png", "-o", out, "--iterations", "5"]
+    terminal, stderr_end = pty.openpty()  # stderr a terminal: the progress bars are drawn
+    size = struct.pack("HHHH", 24, 120, 0, 0)  # rows, columns: a bar needs a width
+    fcntl.ioctl(stderr_end, termios.TIOCSWINSZ, size)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "torchiid.cli", *args],  # progress bar on
+        [sys.executable, "-m", "torchiid.cli", *args],
         cwd=tmp_path,
         env=ENV,
         stdin=subprocess.DEVNULL,
         stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,  # universal newlines: the bar's carriage returns end lines too
+        stderr=stderr_end,
     )
-    seen = []
-    for line in proc.stderr:
-        seen.append(line)
-        if line.startswith("b_slow:"):  # its iteration bar: the decomposition has begun
-            proc.send_signal(signal.SIGINT)
+    os.close(stderr_end)
+    seen, sent = b"", False
+    while True:
+        try:
+            chunk = os.read(terminal, 4096)
+        except OSError:  # EIO: the process has exited and closed the terminal
             break
-    stderr = "".join(seen) + proc.communicate(timeout=120)[1]
-    assert proc.returncode == 130, stderr
+        if not chunk:
+            break
+        seen += chunk
+        if not sent and b"b_slow:" in seen:  # its iteration bar: the decomposition has begun
+            proc.send_signal(signal.SIGINT)
+            sent = True
+    os.close(terminal)
+    proc.wait(timeout=120)
+    stderr = seen.decode(errors="replace")
+    assert sent and proc.returncode == 130, stderr
     assert "Traceback" not in stderr
     assert (
         "torchiid: interrupted while processing b_slow.png (nothing of it was written); "

@@ -44,18 +44,24 @@ def output_names(stem: str, settings: Any, params: Parameters) -> list[str]:
     return names
 
 
+def saved_info(out_dir: Path, stem: str) -> dict | None:
+    """The ``<stem>-info.json`` in ``out_dir`` (``None``: missing, unreadable or not a record)."""
+    try:
+        info = json.loads((out_dir / f"{stem}-info.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return info if isinstance(info, dict) else None
+
+
 def recorded(
     out_dir: Path, names: list[str], stem: str, sha: str, phash: str, mask_sha: str | None
 ) -> bool:
     """The outputs there are complete and record this input, its own mask and these parameters."""
     if not all(os.path.isfile(out_dir / n) for n in names):
         return False
-    try:
-        info = json.loads((out_dir / f"{stem}-info.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return False
+    info = saved_info(out_dir, stem)
     return (
-        isinstance(info, dict)
+        info is not None
         and info.get("input_sha256") == sha
         and info.get("params_hash") == phash
         and info.get("mask_sha256") == mask_sha

@@ -192,6 +192,20 @@ def params_from_args(args: argparse.Namespace) -> Parameters:
     return params
 
 
+def progress_bars(args: argparse.Namespace) -> bool:
+    """Whether to draw progress bars: not ``--no-progress`` or ``-q``, and stderr a terminal.
+
+    A bar redraws its line with carriage returns; in a log file or a pipe those pile up on
+    one line and the messages land among them, so there a run writes lines instead.
+    """
+    if getattr(args, "no_progress", False):
+        return False
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):  # a closed or replaced stream
+        return False
+
+
 def say(args: argparse.Namespace, message: str) -> None:
     """Print a note or a summary line to stderr, unless ``-q``."""
     if not getattr(args, "quiet", False):

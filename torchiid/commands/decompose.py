@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from torchiid.commands.common import add_parameter_options, params_from_args, say
+from torchiid.commands.common import add_parameter_options, params_from_args, progress_bars, say
 
 if TYPE_CHECKING:
     from torchiid.collection import ImageResult, Plan, Progress, RunSettings, RunSummary
@@ -143,7 +143,9 @@ class _Printer:
     """Prints what a run does: messages above the progress bar, the bar, the summary."""
 
     def __init__(self, args: argparse.Namespace, out: Path) -> None:
-        self.show = not args.no_progress
+        self.show = progress_bars(args)
+        # without a bar because stderr is a log or a pipe: a line per image instead
+        self.lines = not self.show and not args.no_progress
         self.quiet = getattr(args, "quiet", False)
         self.verbose = getattr(args, "verbose", False)
         self.out = out
@@ -202,7 +204,7 @@ class _Printer:
                 f"{progress.per_minute:.1f} images/minute"
                 + (f", {_duration(eta)} left" if eta is not None and eta > 0 else "")
             )
-        if self.bar is not None:
+        if self.bar is not None or self.lines:
             self.note(line)
         else:
             log.info(line)

@@ -188,6 +188,7 @@ def _load_saved(folder: Path, source: Path, image: torch.Tensor, need_stage1: bo
     """
     import torch
 
+    from torchiid.collection.image_files import saved_info
     from torchiid.collection.settings import file_sha256
     from torchiid.core.exceptions import ImageError, TorchiidError
     from torchiid.io import load_image
@@ -198,7 +199,8 @@ def _load_saved(folder: Path, source: Path, image: torch.Tensor, need_stage1: bo
     for path in (r_path, s_path):
         if not path.is_file():
             raise TorchiidError(f"{path}: not found (--from needs the files of `decompose`)")
-    if _recorded_sha256(folder / f"{stem}-info.json") not in (None, file_sha256(source)):
+    recorded = (saved_info(folder, stem) or {}).get("input_sha256")  # None: cannot be checked
+    if isinstance(recorded, str) and recorded != file_sha256(source):
         raise ImageError(
             f"{folder}: its {stem}-* layers are the decomposition of another file than "
             f"{source} (their {stem}-info.json records another SHA-256); decompose {source} "
@@ -224,20 +226,6 @@ def _load_saved(folder: Path, source: Path, image: torch.Tensor, need_stage1: bo
     if sigma is not None and rho is None:  # ρ = I / σ, as decompose made it
         rho = torch.where(sigma > 0, image / sigma.clamp_min(1e-30), 0.0).clamp_(0, 1)
     return tuple(None if x is None else x[None] for x in (r, s, sigma, rho))
-
-
-def _recorded_sha256(info_path: Path) -> str | None:
-    """The input's SHA-256 that a saved ``-info.json`` records (``None``: none, or unreadable).
-
-    Files written before torchiid recorded it, or by hand, cannot be checked and are taken as
-    they are.
-    """
-    try:
-        info = json.loads(info_path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    sha = info.get("input_sha256") if isinstance(info, dict) else None
-    return sha if isinstance(sha, str) else None
 
 
 def _output_names(args: argparse.Namespace, stem: str, tag: str, decomposed: bool) -> list[str]:
@@ -269,14 +257,18 @@ _METHOD_OPTIONS = ("params", "variant", "iterations", "max_side")
 
 def _check_numbers(args: argparse.Namespace, image: Any, texture: Any) -> None:
     """The options' numbers, checked as the edits check them (ParameterError, status 2)."""
+    from torchiid.core.exceptions import ParameterError
     from torchiid.edit.common import check_edit_numbers
 
-    check_edit_numbers(
-        image, blur=args.blur, feather=args.feather, strength=args.strength,
-        intensity=args.operation == "illumination-intensity", hue=args.hue, chroma=args.chroma,
-        amount=args.amount, percentile=args.percentile, radius=args.radius, scale=args.scale,
-        texture=texture if args.fit == "tile" else None, prefix="--",
-    )  # fmt: skip
+    try:
+        check_edit_numbers(
+            image, blur=args.blur, feather=args.feather, strength=args.strength,
+            intensity=args.operation == "illumination-intensity", hue=args.hue,
+            chroma=args.chroma, amount=args.amount, percentile=args.percentile,
+            radius=args.radius, scale=args.scale, texture=texture if args.fit == "tile" else None,
+        )  # fmt: skip
+    except ParameterError as exc:  # its message starts with the number's name: the option's
+        raise ParameterError(f"--{exc}") from None
 
 
 def _decompose(args: argparse.Namespace, batch: torch.Tensor, params: Any) -> Any:

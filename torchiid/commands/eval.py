@@ -13,7 +13,13 @@ import math
 import sys
 from pathlib import Path
 
-from torchiid.commands.common import add_parameter_options, finite_float, params_from_args, say
+from torchiid.commands.common import (
+    add_parameter_options,
+    finite_float,
+    params_from_args,
+    progress_bars,
+    say,
+)
 
 __all__ = ["DATASETS", "DESCRIPTION", "EPILOG", "METHODS", "add_arguments", "run"]
 
@@ -292,7 +298,7 @@ def run(args: argparse.Namespace) -> int:
         limit=args.limit,
         ids=args.ids,
         overwrite=args.overwrite,
-        progress=not args.no_progress,
+        progress=progress_bars(args),
         on_failure=_report_failure,
         **given,
     )

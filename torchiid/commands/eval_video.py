@@ -17,6 +17,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from torchiid._version import __version__
+from torchiid.commands.common import progress_bars
 from torchiid.core.exceptions import (
     ImageError,
     ParameterError,
@@ -92,7 +93,7 @@ def run_eval_video(args: argparse.Namespace) -> int:
     eval_flow = args.eval_flow or taken["method"].default
     space = args.space or taken["space"].default
     source = open_frames(args.dir)
-    show = not args.no_progress
+    show = progress_bars(args)
     rows, failures, prev = [], 0, None
     bar = tqdm(total=source.count, desc="frames", unit="frame", disable=not show, file=sys.stderr)
     try:

@@ -17,6 +17,7 @@ from torchiid.commands.common import (
     add_parameter_options,
     finite_float,
     params_from_args,
+    progress_bars,
 )
 
 if TYPE_CHECKING:
@@ -248,13 +249,10 @@ def run(args: argparse.Namespace) -> int:
                 f"{args.masks}: holds {len(masks)} masks but {args.input} has {source.count} "
                 "frames; give one mask per frame"
             )
-    show = not args.no_progress
+    show = progress_bars(args)
 
-    def tell(message: str) -> None:  # above the progress bar while it shows
-        if show:
-            tqdm.write(message, file=sys.stderr)
-        else:
-            print(message, file=sys.stderr)
+    def tell(message: str) -> None:  # a line; above the progress bar while it shows
+        tqdm.write(message, file=sys.stderr)
 
     failures = written = seen = skipped = 0
     preview = None

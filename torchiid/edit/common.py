@@ -107,7 +107,6 @@ def check_edit_numbers(
     radius: float | None = None,
     scale: float | None = None,
     texture: torch.Tensor | None = None,
-    prefix: str = "",
 ) -> None:
     """Refuse an edit's number that is not finite or outside its range, naming it.
 
@@ -119,35 +118,34 @@ def check_edit_numbers(
     −:data:`FACTOR_LIMIT` for the light colour; ``chroma`` at least 0); ``amount`` in
     ``[MOST_HARDENING, 1]``; ``percentile`` in (0, 1); ``radius`` and ``scale`` above 0, and
     with a ``texture`` to tile, its tiles at most :data:`MAX_TILE` × ``like``'s longer side.
-    The messages name each number with ``prefix`` before it (``"--"``: as an option).
+    Each message starts with the number's name.
 
     Raises:
         ParameterError: the first number out of its range.
     """
     side = float(max(like.shape[-2:]))
-    p = prefix
     for name, sigma in (("blur", blur), ("feather", feather)):
         if sigma is not None:
-            check_number(sigma, p + name, low=0.0, high=side)
+            check_number(sigma, name, low=0.0, high=side)
     if strength is not None:
         low = 0.0 if intensity else -FACTOR_LIMIT  # below 0 the intensity makes S negative
-        check_number(strength, p + "strength", low=low, high=FACTOR_LIMIT)
+        check_number(strength, "strength", low=low, high=FACTOR_LIMIT)
     if hue is not None:
-        check_number(hue, p + "hue")
+        check_number(hue, "hue")
     if chroma is not None:
-        check_number(chroma, p + "chroma", low=0.0, high=FACTOR_LIMIT)
+        check_number(chroma, "chroma", low=0.0, high=FACTOR_LIMIT)
     if amount is not None:
-        check_number(amount, p + "amount", low=MOST_HARDENING, high=1.0)
-    if percentile is not None and not 0 < check_number(percentile, p + "percentile") < 1:
-        raise ParameterError(f"{p}percentile must be in (0, 1), got {percentile}")
+        check_number(amount, "amount", low=MOST_HARDENING, high=1.0)
+    if percentile is not None and not 0 < check_number(percentile, "percentile") < 1:
+        raise ParameterError(f"percentile must be in (0, 1), got {percentile}")
     for name, value in (("radius", radius), ("scale", scale)):
-        if value is not None and not check_number(value, p + name) > 0:
-            raise ParameterError(f"{p}{name} must be > 0, got {value}")
+        if value is not None and not check_number(value, name) > 0:
+            raise ParameterError(f"{name} must be > 0, got {value}")
     if scale is not None and texture is not None:
         most = MAX_TILE * side / max(texture.shape[-2:])
         if scale > most:
             raise ParameterError(
-                f"{p}scale must be at most {most:.3g} for this texture and photo (tiles up to "
+                f"scale must be at most {most:.3g} for this texture and photo (tiles up to "
                 f"{MAX_TILE}x the photo's longer side), got {scale:g}"
             )
 
