@@ -293,3 +293,24 @@ def test_an_input_folder_that_is_the_output_folder_is_run_again_as_done(photos, 
     assert sorted(p.name for p in folder.iterdir()) == made
     records = [json.loads(line) for line in (folder / "manifest.jsonl").read_text().splitlines()]
     assert [r["key"] for r in records] == ["cat"]
+
+
+def test_an_alpha_channel_that_leaves_pixels_out_is_a_note(photos, tmp_path, capsys):
+    rgb = cv2.imread(str(photos / "cat.png"))
+    alpha = np.full(rgb.shape[:2], 255, np.uint8)
+    cv2.imwrite(str(tmp_path / "opaque.png"), np.dstack([rgb, alpha]))
+    alpha[:, : rgb.shape[1] // 4] = 0  # the left quarter transparent
+    cv2.imwrite(str(tmp_path / "holes.png"), np.dstack([rgb, alpha]))
+    out = tmp_path / "out"
+    argv = ["decompose", str(tmp_path / "holes.png"), str(tmp_path / "opaque.png"), "-o", str(out)]
+    assert main([*argv, *FAST]) == 0
+    err = capsys.readouterr().err
+    note = (
+        f"torchiid: note: {tmp_path / 'holes.png'}: its alpha channel is the mask: the 25.0% of "
+        "its pixels that are transparent are left out (0 in the layers)"
+    )
+    assert note in err.splitlines() and "opaque.png: its alpha" not in err
+    info = {s: json.loads((out / f"{s}-info.json").read_text()) for s in ("holes", "opaque")}
+    assert info["holes"]["alpha_mask"] is True and info["opaque"]["alpha_mask"] is True
+    refl = cv2.imread(str(out / "holes-reflectance.png"))
+    assert not refl[:, : rgb.shape[1] // 4].any()

@@ -227,6 +227,8 @@ def process_image(
         if job.mask is not None:
             extra["mask"] = str(job.mask)
             extra["mask_sha256"] = result.mask_sha256
+        if loaded.mask is not None:
+            extra["alpha_mask"] = True  # the file's alpha channel is (part of) the mask
         with tx:
             write_outputs(tx, stem, loaded, decomposition, settings, params, seconds, extra)
             _test_hold(stem)
@@ -322,7 +324,7 @@ def _load_input(job: ImageJob, settings: RunSettings, shared_mask: Any, result: 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputWarning)  # said once, in the image's note
         loaded = load_image(job.path, linear=settings.linear)
-    result.note = loaded.negatives_note()
+    result.note = "\n".join(n for n in (loaded.negatives_note(), _alpha_note(loaded)) if n) or None
     result.sha256 = file_sha256(job.path)
     image, mask = loaded.image, loaded.mask
     masks = [(settings.mask, shared_mask)]
@@ -336,6 +338,19 @@ def _load_input(job: ImageJob, settings: RunSettings, shared_mask: Any, result: 
             raise ImageError(f"{job.path}: is {w}x{h} px but the mask {mask_path} is {mw}x{mh} px")
         mask = m if mask is None else (mask & m)
     return loaded, mask
+
+
+def _alpha_note(loaded: Any) -> str | None:
+    """A note when the file's alpha channel leaves pixels out of the decomposition."""
+    if loaded.mask is None:
+        return None
+    outside = 1.0 - float(loaded.mask.float().mean())
+    if outside <= 0:
+        return None
+    return (
+        f"{loaded.path}: its alpha channel is the mask: the {outside:.1%} of its pixels that "
+        "are transparent are left out (0 in the layers)"
+    )
 
 
 def _failure_kind(exc: Exception) -> str:
