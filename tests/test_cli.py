@@ -237,7 +237,9 @@ def test_bad_run_options_are_usage_errors(argv, capsys):
     with pytest.raises(SystemExit) as stop:
         main(["decompose", "x.png", "-o", "out", *argv])
     assert stop.value.code == 2
-    assert "torchiid decompose: error: argument" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.startswith("torchiid: error: argument ") and "usage:" not in err
+    assert err.endswith(" (see 'torchiid decompose --help')\n") and err.count("\n") == 1
 
 
 def test_quiet_and_verbose_exclude_each_other(capsys):

@@ -76,6 +76,18 @@ COMMANDS: tuple[Command, ...] = (
 )
 
 
+class _Parser(argparse.ArgumentParser):
+    """A parser whose usage errors are one line, as every other error of the command line.
+
+    The usage summary of a command runs to a dozen lines; the error names the option, and
+    ``--help`` is one command away.
+    """
+
+    def error(self, message: str) -> NoReturn:
+        """Print ``torchiid: error: MESSAGE (see 'PROG --help')`` and exit with status 2."""
+        self.exit(2, f"torchiid: error: {message} (see '{self.prog} --help')\n")
+
+
 class _Formatter(argparse.RawDescriptionHelpFormatter):
     """Descriptions and epilogs as written; option help in a column wide enough for the options."""
 
@@ -91,7 +103,7 @@ def _command_list() -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``torchiid`` command."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="torchiid",
         usage="%(prog)s [-h] [--version] [-q | -v] COMMAND ...",
         description="Intrinsic image decomposition (I = R x S) with semantic hierarchical priors."
