@@ -314,3 +314,25 @@ def test_an_alpha_channel_that_leaves_pixels_out_is_a_note(photos, tmp_path, cap
     assert info["holes"]["alpha_mask"] is True and info["opaque"]["alpha_mask"] is True
     refl = cv2.imread(str(out / "holes-reflectance.png"))
     assert not refl[:, : rgb.shape[1] // 4].any()
+
+
+def test_files_that_are_not_this_decomposition_say_why_they_are_not_skipped(
+    photos, tmp_path, capsys
+):
+    photo = tmp_path / "cat.png"
+    photo.write_bytes((photos / "cat.png").read_bytes())
+    out = tmp_path / "out"
+    argv = ["decompose", str(photo), "-o", str(out), "--no-progress"]
+    assert main([*argv, "--iterations", "1"]) == 0
+    capsys.readouterr()
+    target = out / "cat-reflectance-linear16.png"
+    for extra, why in [
+        (["--iterations", "2"], "written with other parameters"),
+        (["--iterations", "1", "--redo"], "--redo runs every input again"),
+    ]:
+        assert main([*argv, *extra]) == 1
+        assert f"{target} exists ({why}); pass --overwrite to replace it" in capsys.readouterr().err
+    cv2.imwrite(str(photo), cv2.imread(str(photos / "cat.png"))[::-1])  # the photo changed
+    assert main([*argv, "--iterations", "1"]) == 1
+    why = f"decomposed from another version of {photo}, or from another file"
+    assert f"{target} exists ({why}); pass --overwrite" in capsys.readouterr().err

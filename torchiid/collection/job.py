@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from torchiid.baselines.retinex import retinex_decomposition
-from torchiid.collection.image_files import output_names, recorded, write_outputs
+from torchiid.collection.image_files import output_names, recorded, saved_info, write_outputs
 from torchiid.collection.method import run_method
 from torchiid.collection.records import ImageJob, ImageResult, InterruptedAfterCommit
 from torchiid.collection.settings import (
@@ -306,8 +306,27 @@ def _found_complete(
                 out_dir, names, job.stem, result.sha256, phash, result.mask_sha256
             ):
                 return True
-            raise OutputError(f"{target} exists; pass --overwrite to replace it")
+            why = _why_not_done(out_dir, job, result, phash, settings.redo)
+            raise OutputError(f"{target} exists{why}; pass --overwrite to replace it")
     return False
+
+
+def _why_not_done(out_dir: Path, job: ImageJob, result: ImageResult, phash: str, redo: bool) -> str:
+    """Why the files there are not this decomposition, as `` (...)``; empty when unknown."""
+    info = saved_info(out_dir, job.stem)
+    if redo:
+        why = "--redo runs every input again"
+    elif info is None or "input_sha256" not in info:
+        return ""  # not a record of torchiid decompose: nothing to compare with
+    elif info.get("input_sha256") != result.sha256:
+        why = f"decomposed from another version of {job.path}, or from another file"
+    elif info.get("params_hash") != phash:
+        why = "written with other parameters"
+    elif info.get("mask_sha256") != result.mask_sha256:
+        why = "written with another mask"
+    else:
+        why = "some of the image's files are missing"
+    return f" ({why})"
 
 
 def _load_input(job: ImageJob, settings: RunSettings, shared_mask: Any, result: ImageResult):
