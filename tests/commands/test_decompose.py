@@ -336,3 +336,12 @@ def test_files_that_are_not_this_decomposition_say_why_they_are_not_skipped(
     assert main([*argv, "--iterations", "1"]) == 1
     why = f"decomposed from another version of {photo}, or from another file"
     assert f"{target} exists ({why}); pass --overwrite" in capsys.readouterr().err
+
+
+def test_the_decomposition_edit_wrote_is_named_as_edit_s(photos, tmp_path, capsys):
+    out = tmp_path / "out"
+    photo = str(photos / "cat.png")
+    assert main(["edit", "merge", photo, "-o", str(out), "--iterations", "1", "-q"]) == 0
+    assert main(["decompose", photo, "-o", str(out), *FAST]) == 1
+    why = "written by torchiid edit, with no record of its parameters"
+    assert f"cat-reflectance-linear16.png exists ({why})" in capsys.readouterr().err

@@ -318,6 +318,8 @@ def _why_not_done(out_dir: Path, job: ImageJob, result: ImageResult, phash: str,
         why = "--redo runs every input again"
     elif info is None or "input_sha256" not in info:
         return ""  # not a record of torchiid decompose: nothing to compare with
+    elif info.get("written_by") == "edit":
+        why = "written by torchiid edit, with no record of its parameters"
     elif info.get("input_sha256") != result.sha256:
         why = f"decomposed from another version of {job.path}, or from another file"
     elif info.get("params_hash") != phash:

@@ -91,7 +91,8 @@ PREVIEW_SIDE = 1024
 DESCRIPTIONS = {
     "reflectance.png": "reflectance R (albedo in [0, 1]), 8-bit sRGB",
     "shading.png": "shading S / shading_white, 8-bit sRGB (values above shading_white clip)",
-    "preview.png": "[image | reflectance | shading / shading_white], 8-bit sRGB, downscaled",
+    "preview.png": "[image | reflectance | shading / shading_white], 8-bit sRGB, each panel at "
+    f"most {PREVIEW_SIDE} px on its longer side",
     "reflectance-linear16.png": "reflectance R, 16-bit linear, unclipped",
     "shading.exr": "shading S, 32-bit float linear OpenEXR (channel Y), unclipped",
     "info.json": "sizes, scale convention and the factors to recover other conventions",
