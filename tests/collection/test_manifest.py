@@ -119,7 +119,8 @@ def test_a_changed_input_is_hashed_again(library, tmp_path, capsys):
     capsys.readouterr()
     assert _run(cover, library / "2019", "-o", out) == 1
     err = capsys.readouterr().err
-    assert "cover-reflectance-linear16.png exists; pass --overwrite" in err
+    why = f"decomposed from another version of {cover}, or from another file"
+    assert f"cover-reflectance-linear16.png exists ({why}); pass --overwrite" in err
     assert _last(out)["cover"]["failure"] == "output"
     assert _run(cover, library / "2019", "-o", out, "--overwrite") == 0  # output failures rerun
     assert "1 done, 1 skipped, 0 failed" in capsys.readouterr().err
@@ -133,7 +134,7 @@ def test_other_parameters_are_not_skipped(library, tmp_path, capsys):
     cover = library / "cover.png"
     assert _run(cover, "-o", out) == 0
     assert _run(cover, "-o", out, "--save-npy") == 1  # another parameters hash
-    assert "exists; pass --overwrite" in capsys.readouterr().err
+    assert "exists (written with other parameters); pass --overwrite" in capsys.readouterr().err
     assert _run(cover, "-o", out, "--save-npy", "--overwrite") == 0
     assert (out / "cover-reflectance.npy").is_file()
     assert len({r["params"] for r in _records(out)}) == 2
@@ -195,7 +196,10 @@ def test_list_file_masks_and_a_failure_into_an_existing_folder(library, tmp_path
     mask[16:48, 10:70] = 255  # another mask: the files there are not this decomposition
     cv2.imwrite(str(library / "mask.png"), mask)
     assert main(argv) == 1
-    assert "cover-reflectance-linear16.png exists; pass --overwrite" in capsys.readouterr().err
+    why = "written with another mask"
+    assert f"cover-reflectance-linear16.png exists ({why}); pass --overwrite" in (
+        capsys.readouterr().err
+    )
 
 
 def test_the_skip_pass_is_linear_and_hashes_only_changed_files(tmp_path, monkeypatch, counting_os):

@@ -66,7 +66,7 @@ def test_existing_outputs_are_not_overwritten(photos, tmp_path, capsys):
     assert main(["decompose", str(photos / "cat.png"), "-o", str(out), *FAST]) == 0
     assert "0 done, 1 skipped" in capsys.readouterr().err  # done: the manifest says so
     assert main(["decompose", str(photos / "cat.png"), "-o", str(out), "--redo", *FAST]) == 1
-    assert "exists; pass --overwrite" in capsys.readouterr().err
+    assert "exists (--redo runs every input again); pass --overwrite" in capsys.readouterr().err
     assert (out / "cat-reflectance.png").read_bytes() == before
     assert main(["decompose", str(photos / "cat.png"), "-o", str(out), "--overwrite", *FAST]) == 0
 
