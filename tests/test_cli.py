@@ -242,6 +242,17 @@ def test_bad_run_options_are_usage_errors(argv, capsys):
     assert err.endswith(" (see 'torchiid decompose --help')\n") and err.count("\n") == 1
 
 
+def test_an_unknown_option_names_the_command_s_help(capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["decompose", "x.png", "-o", "out", "--bogus", "1"])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert (
+        err
+        == "torchiid: error: unrecognized arguments: --bogus 1 (see 'torchiid decompose --help')\n"
+    )
+
+
 def test_quiet_and_verbose_exclude_each_other(capsys):
     base = ["decompose", "x.png", "-o", "out"]
     for argv in (["-q", "-v", *base], [*base, "-q", "-v"], ["-q", *base, "-v"]):

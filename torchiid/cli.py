@@ -87,6 +87,19 @@ class _Parser(argparse.ArgumentParser):
         """Print ``torchiid: error: MESSAGE (see 'PROG --help')`` and exit with status 2."""
         self.exit(2, f"torchiid: error: {message} (see '{self.prog} --help')\n")
 
+    def parse_args(self, args=None, namespace=None):  # type: ignore[no-untyped-def, override]
+        """As argparse's, with arguments no option takes named against the command's help."""
+        parsed, extras = self.parse_known_args(args, namespace)
+        if extras:
+            command = getattr(parsed, "command", None)
+            prog = f"{self.prog} {command}" if command else self.prog
+            self.exit(
+                2,
+                f"torchiid: error: unrecognized arguments: {' '.join(extras)} "
+                f"(see '{prog} --help')\n",
+            )
+        return parsed
+
 
 class _Formatter(argparse.RawDescriptionHelpFormatter):
     """Descriptions and epilogs as written; option help in a column wide enough for the options."""

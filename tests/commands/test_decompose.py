@@ -307,7 +307,7 @@ def test_an_alpha_channel_that_leaves_pixels_out_is_a_note(photos, tmp_path, cap
     err = capsys.readouterr().err
     note = (
         f"torchiid: note: {tmp_path / 'holes.png'}: its alpha channel is the mask: the 25.0% of "
-        "its pixels that are transparent are left out (0 in the layers)"
+        "its pixels that are at most half opaque are left out (0 in the layers)"
     )
     assert note in err.splitlines() and "opaque.png: its alpha" not in err
     info = {s: json.loads((out / f"{s}-info.json").read_text()) for s in ("holes", "opaque")}
@@ -345,3 +345,21 @@ def test_the_decomposition_edit_wrote_is_named_as_edit_s(photos, tmp_path, capsy
     assert main(["decompose", photo, "-o", str(out), *FAST]) == 1
     why = "written by torchiid edit, with no record of its parameters"
     assert f"cat-reflectance-linear16.png exists ({why})" in capsys.readouterr().err
+
+
+def test_the_outputs_stay_out_of_the_inputs_after_a_failed_rerun_and_through_a_link(
+    photos, tmp_path, capsys
+):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    (folder / "cat.png").write_bytes((photos / "cat.png").read_bytes())
+    (tmp_path / "link").symlink_to(folder, target_is_directory=True)
+    argv = ["decompose", str(folder), "-o", str(folder), *FAST]
+    assert main(argv) == 0
+    assert main([*argv, "--save-npy"]) == 1  # other parameters: cat fails, its files stay
+    assert "exists (written with other parameters)" in capsys.readouterr().err
+    for source in (folder, tmp_path / "link"):  # its last record failed; the files are still its
+        assert main(["decompose", str(source), "-o", str(folder), *FAST]) == 0
+        assert ", 0 failed" in capsys.readouterr().err  # cat alone: its files found complete
+    records = [json.loads(line) for line in (folder / "manifest.jsonl").read_text().splitlines()]
+    assert {r["key"] for r in records} == {"cat"}

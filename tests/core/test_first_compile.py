@@ -62,3 +62,15 @@ def test_nested_blocks_each_hear_of_it_once(tmp_path):
             kernels.twice(1)
             kernels.twice(1.0)
     assert sorted(said) == ["inner", "outer"]
+
+
+def test_a_note_that_fails_does_not_stop_the_compilation(tmp_path):
+    source = tmp_path / "failing_note_kernels.py"
+    source.write_text(KERNEL)
+    watch_compilation()
+
+    def broken_pipe():
+        raise BrokenPipeError("stderr is closed")
+
+    with notify_first_compile(broken_pipe):
+        assert _load(source, "torchiid.failing_note_kernels").twice(5) == 10

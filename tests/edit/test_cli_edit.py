@@ -256,6 +256,7 @@ def test_a_saved_decomposition_of_another_file_is_refused(files, decomposed, tmp
         assert main(args) == 2
         err = capsys.readouterr().err
         assert f"{folder}: its m-* layers are the decomposition of another file than {other}" in err
+        assert f"(of {d / 'm.png'}, whose SHA-256 their m-info.json records)" in err
         assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
     assert not (tmp_path / "x").exists()
     # the photo itself, copied elsewhere, is the same file: its decomposition serves it

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
@@ -167,14 +166,22 @@ def test_globs_leave_out_the_output_folder(library, monkeypatch):
 
 
 def test_files_to_skip_are_left_out_of_walks_and_globs_but_not_named_ones(library, monkeypatch):
+    from torchiid.io.inputs import file_identity
+
     monkeypatch.chdir(library.parent)
     written = photo(library / "cover-reflectance.png")  # an earlier run's, into the same folder
-    skip = {os.path.abspath(written)}
+    skip = {file_identity(written)}
     assert _keys(list_inputs([library], skip=skip)) == ["cover"]
     assert _keys(list_inputs([Path("library")], recursive=True, skip=skip))[0] == "cover"
     assert _keys(list_inputs(["library/*.png"], skip=skip)) == ["cover"]
     assert _keys(list_inputs([written], skip=skip)) == ["cover-reflectance"]  # named on its own
     assert sorted(_keys(list_inputs([library]))) == ["cover", "cover-reflectance"]
+    # the folder through a symbolic link, and by a name with "..": the same files
+    (library.parent / "link").symlink_to(library, target_is_directory=True)
+    assert _keys(list_inputs([Path("link")], skip=skip)) == ["cover"]
+    assert _keys(list_inputs(["link/*.png"], skip=skip)) == ["cover"]
+    assert _keys(list_inputs([library / "2019" / ".."], skip=skip)) == ["cover"]
+    assert file_identity("link/cover-reflectance.png") == file_identity(written)
 
 
 def test_walks_into_says_whether_a_folder_is_listed(library, monkeypatch):

@@ -316,8 +316,8 @@ def _why_not_done(out_dir: Path, job: ImageJob, result: ImageResult, phash: str,
     info = saved_info(out_dir, job.stem)
     if redo:
         why = "--redo runs every input again"
-    elif info is None or "input_sha256" not in info:
-        return ""  # not a record of torchiid decompose: nothing to compare with
+    elif info is None or "input_sha256" not in info or result.sha256 is None:
+        return ""  # no record of torchiid's, or an input that cannot be read: no comparison
     elif info.get("written_by") == "edit":
         why = "written by torchiid edit, with no record of its parameters"
     elif info.get("input_sha256") != result.sha256:
@@ -365,12 +365,14 @@ def _alpha_note(loaded: Any) -> str | None:
     """A note when the file's alpha channel leaves pixels out of the decomposition."""
     if loaded.mask is None:
         return None
-    outside = 1.0 - float(loaded.mask.float().mean())
-    if outside <= 0:
+    total = loaded.mask.numel()
+    outside = total - int(loaded.mask.sum())
+    if outside == 0:
         return None
+    share = f"{outside / total:.1%}" if outside / total >= 0.001 else f"{outside} px"
     return (
-        f"{loaded.path}: its alpha channel is the mask: the {outside:.1%} of its pixels that "
-        "are transparent are left out (0 in the layers)"
+        f"{loaded.path}: its alpha channel is the mask: the {share} of its pixels that are at "
+        "most half opaque are left out (0 in the layers)"
     )
 
 

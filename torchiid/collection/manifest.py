@@ -105,6 +105,7 @@ class Manifest:
         self.path = Path(path)
         self.records: dict[str, dict] = {}
         self.bad_lines = 0
+        self._written: set[str] = set()  # every "done" record's files, not the last ones only
         try:
             f = open(self.path, encoding="utf-8", errors="replace")
         except FileNotFoundError:
@@ -116,6 +117,10 @@ class Manifest:
                     self.records[record["key"]] = record
                 except (ValueError, KeyError, TypeError):
                     self.bad_lines += 1  # a torn line of a killed run, or not ours
+                    continue
+                files = record.get("files")
+                if record.get("status") == "done" and isinstance(files, list):
+                    self._written.update(f for f in files if isinstance(f, str))
         if self.bad_lines:
             log.info("%s: %d unreadable line(s) ignored", self.path, self.bad_lines)
 
@@ -127,20 +132,17 @@ class Manifest:
         return self.records.get(key)
 
     def written_files(self, out: str | os.PathLike) -> set[str]:
-        """Absolute paths of the files that the records say were written into ``out``.
+        """The files that any ``done`` record says were written into ``out``.
 
-        The outputs of the images done: a folder that is both an input and the output folder
-        (``torchiid decompose photos -o photos``) would otherwise give them as new inputs
-        on the next run (:func:`torchiid.io.inputs.list_inputs`, ``skip``).
+        As :func:`torchiid.io.inputs.file_identity` names them. The outputs of the images
+        done, by this run's parameters or earlier ones: a folder that is both an input and the
+        output folder (``torchiid decompose photos -o photos``) would otherwise give them as
+        new inputs on the next run (:func:`torchiid.io.inputs.list_inputs`, ``skip``).
         """
-        base = os.path.abspath(out)
-        return {
-            os.path.join(base, name)
-            for record in self.records.values()
-            if record.get("status") == "done"
-            for name in record.get("files") or ()
-            if isinstance(name, str)
-        }
+        from torchiid.io.inputs import file_identity
+
+        base = os.path.realpath(out)
+        return {file_identity(os.path.join(base, name)) for name in self._written}
 
 
 class ManifestWriter:

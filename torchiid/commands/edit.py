@@ -199,12 +199,14 @@ def _load_saved(folder: Path, source: Path, image: torch.Tensor, need_stage1: bo
     for path in (r_path, s_path):
         if not path.is_file():
             raise TorchiidError(f"{path}: not found (--from needs the files of `decompose`)")
-    recorded = (saved_info(folder, stem) or {}).get("input_sha256")  # None: cannot be checked
+    info = saved_info(folder, stem) or {}
+    recorded = info.get("input_sha256")  # None: written before it was recorded, not checked
     if isinstance(recorded, str) and recorded != file_sha256(source):
         raise ImageError(
             f"{folder}: its {stem}-* layers are the decomposition of another file than "
-            f"{source} (their {stem}-info.json records another SHA-256); decompose {source} "
-            "itself, or pass --from the folder of its own decomposition"
+            f"{source} (of {info.get('input', 'a file')}, whose SHA-256 their {stem}-info.json "
+            f"records); decompose {source} itself, or pass --from the folder of its own "
+            "decomposition"
         )
     r = load_image(r_path, linear=True, alpha="ignore").image
     s = _read_exr(s_path)

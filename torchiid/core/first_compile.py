@@ -16,6 +16,7 @@ imports neither torch nor numba.
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -27,6 +28,8 @@ COMPILING = (
     "compiling the CPU kernels, once for this Python environment (up to a minute; "
     "later runs load them from numba's cache)"
 )
+
+logger = logging.getLogger("torchiid")
 
 _lock = threading.Lock()
 _waiting: list[_Once] = []
@@ -45,7 +48,10 @@ class _Once:
             if self.done:
                 return
             self.done = True
-        self.callback()
+        try:
+            self.callback()
+        except Exception:  # noqa: BLE001 - a note must not fail the compilation it announces
+            logger.debug("the note of the kernels' compilation failed", exc_info=True)
 
 
 @contextmanager
@@ -54,7 +60,8 @@ def notify_first_compile(callback: Callable[[], None]) -> Iterator[None]:
 
     A kernel compiles when numba's cache has no machine code for it (a fresh environment, a
     new torchiid or numba version, a cleared cache); loading it from the cache does not call
-    ``callback``. The call comes from the thread that compiles, before the compilation.
+    ``callback``. The call comes from the thread that compiles, before the compilation; an
+    exception it raises is logged (at debug level) and does not stop the compilation.
 
     Example:
         >>> from torchiid.core.first_compile import notify_first_compile

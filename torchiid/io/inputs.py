@@ -28,6 +28,7 @@ __all__ = [
     "IMAGE_SUFFIXES",
     "InputItem",
     "collect_inputs",
+    "file_identity",
     "list_inputs",
     "read_list_file",
     "unique_keys",
@@ -105,6 +106,7 @@ def _walk(
     except OSError as exc:
         raise TorchiidError(f"{folder}: cannot list the folder ({exc.strerror or exc})") from None
     subfolders = []
+    real = file_identity(folder) if skip else ""  # resolved once: each file joins it
     for entry in entries:
         try:
             if entry.is_file():
@@ -112,7 +114,7 @@ def _walk(
                 # photos of the folder; a hidden file named on its own is still taken
                 if _is_image(entry.name) and not entry.name.startswith("."):
                     path = Path(folder, entry.name)
-                    if not skip or os.path.abspath(path) not in skip:
+                    if not skip or _identity(entry, real) not in skip:
                         yield path
             elif recursive and entry.is_dir(follow_symlinks=False):
                 if not entry.name.startswith(".") and not _same_folder(entry, excluded):
@@ -167,7 +169,7 @@ def _expand_glob(
         for p in glob.glob(pattern, recursive=True)
         if _is_image(p)
         and os.path.isfile(p)
-        and not (skip and os.path.abspath(p) in skip)
+        and not (skip and file_identity(p) in skip)
         and not _below_excluded(Path(p), root, excluded, seen)
     )
     if not found:
@@ -256,8 +258,8 @@ def list_inputs(
             are not taken as inputs). Files named on their own or in a list file are always
             taken, and so are the images of a folder, or a glob's fixed part, that is itself
             excluded.
-        skip: absolute paths of files never taken from a folder walk or a glob: the outputs
-            that the output folder's manifest records
+        skip: files never taken from a folder walk or a glob, as :func:`file_identity` names
+            them: the outputs that the output folder's manifest records
             (:meth:`~torchiid.collection.manifest.Manifest.written_files`), for an output
             folder that is also an input folder. Files named on their own are still taken.
 
@@ -298,6 +300,22 @@ def list_inputs(
     for list_file in lists:
         out.extend(read_list_file(Path(list_file)))
     return out
+
+
+def file_identity(path: str | os.PathLike) -> str:
+    """A file's path with symbolic links resolved, normalised and in the platform's case rule.
+
+    Two names of one file (through a link, with ``..``, with either separator on Windows) give
+    the same string: what ``skip`` of :func:`list_inputs` holds and compares.
+    """
+    return os.path.normcase(os.path.realpath(path))
+
+
+def _identity(entry: os.DirEntry, real_folder: str) -> str:
+    """:func:`file_identity` of a folder's entry, given the folder's own."""
+    if entry.is_symlink():
+        return file_identity(entry.path)
+    return os.path.normcase(os.path.join(real_folder, entry.name))
 
 
 def walks_into(inputs: Sequence[Path | str], folder: Path) -> bool:
