@@ -73,3 +73,19 @@ def decompose_compiling_a_kernel(image, params, **kwargs):
     exec("def one(x):\n    return x + 1\n", namespace)
     njit(namespace["one"])(1)
     return decompose(image, params, **kwargs)
+
+
+class CompileCounter:
+    """A run's reporter that counts how often it is told that the kernels compile."""
+
+    compiled = 0
+
+    def planned(self, plan, summary):
+        """Nothing to do with the plan."""
+
+    def result(self, result, progress):
+        """Nothing to do with a result."""
+
+    def compiling(self):
+        """Count one."""
+        self.compiled += 1

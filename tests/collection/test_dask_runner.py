@@ -22,7 +22,7 @@ from torchiid.io.inputs import InputItem
 from torchiid.io.layers import layer_file_names
 from torchiid.params import Parameters
 
-from collection_helpers import FAST, decompose_compiling_a_kernel, photo
+from collection_helpers import FAST, CompileCounter, decompose_compiling_a_kernel, photo
 
 distributed = pytest.importorskip("distributed")
 
@@ -91,22 +91,10 @@ def test_a_dask_cluster_run_survives_a_killed_worker(library, tmp_path, cluster,
 
 
 def test_workers_compiling_the_kernels_are_said_once_on_the_client(tmp_path, monkeypatch):
-    class Reporter:
-        compiled = 0
-
-        def planned(self, plan, summary):
-            pass
-
-        def result(self, result, progress):
-            pass
-
-        def compiling(self):
-            self.compiled += 1
-
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
     sources = [photo(tmp_path / "in" / f"{n}.png", seed=i) for i, n in enumerate("abc")]
     settings = RunSettings(out=tmp_path / "out", params=Parameters().replace(iterations=1))
-    told = Reporter()
+    told = CompileCounter()
     with distributed.LocalCluster(
         n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=50
     ) as c:

@@ -24,7 +24,13 @@ from torchiid.io.inputs import list_inputs
 from torchiid.io.layers import layer_file_names
 from torchiid.params import Parameters
 
-from collection_helpers import FAST, decompose_compiling_a_kernel, decompose_counting_arenas, photo
+from collection_helpers import (
+    FAST,
+    CompileCounter,
+    decompose_compiling_a_kernel,
+    decompose_counting_arenas,
+    photo,
+)
 
 
 def _kill_when_held(folder, stem, sig=signal.SIGKILL, timeout=90):
@@ -267,21 +273,9 @@ def test_a_worker_s_threads_share_one_malloc_arena(tmp_path, monkeypatch):
 
 
 def test_workers_compiling_the_kernels_are_said_once(tmp_path):
-    class Reporter:
-        compiled = 0
-
-        def planned(self, plan, summary):
-            pass
-
-        def result(self, result, progress):
-            pass
-
-        def compiling(self):
-            self.compiled += 1
-
     sources = [photo(tmp_path / "in" / f"{n}.png", seed=i) for i, n in enumerate("ab")]
     settings = RunSettings(out=tmp_path / "out", params=Parameters().replace(iterations=1))
-    told = Reporter()
+    told = CompileCounter()
     summary = run_collection(
         list_inputs(sources),
         settings,
