@@ -196,14 +196,12 @@ def progress_bars(args: argparse.Namespace) -> bool:
     """Whether to draw progress bars: not ``--no-progress`` or ``-q``, and stderr a terminal.
 
     A bar redraws its line with carriage returns; in a log file or a pipe those pile up on
-    one line and the messages land among them, so there a run writes lines instead.
+    one line and the messages land among them, so there a run writes lines instead
+    (:mod:`torchiid.core.progress`).
     """
-    if getattr(args, "no_progress", False):
-        return False
-    try:
-        return sys.stderr.isatty()
-    except (AttributeError, ValueError):  # a closed or replaced stream
-        return False
+    from torchiid.core.progress import stderr_is_terminal
+
+    return not getattr(args, "no_progress", False) and stderr_is_terminal()
 
 
 def say(args: argparse.Namespace, message: str) -> None:

@@ -17,7 +17,6 @@ from torchiid.commands.common import (
     add_parameter_options,
     finite_float,
     params_from_args,
-    progress_bars,
     say,
 )
 
@@ -298,7 +297,7 @@ def run(args: argparse.Namespace) -> int:
         limit=args.limit,
         ids=args.ids,
         overwrite=args.overwrite,
-        progress=progress_bars(args),
+        progress=not args.no_progress,  # a bar on a terminal, a line now and then in a log
         on_failure=_report_failure,
         **given,
     )

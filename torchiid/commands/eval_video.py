@@ -17,7 +17,6 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from torchiid._version import __version__
-from torchiid.commands.common import progress_bars
 from torchiid.core.exceptions import (
     ImageError,
     ParameterError,
@@ -25,6 +24,7 @@ from torchiid.core.exceptions import (
     describe_error,
     one_line,
 )
+from torchiid.core.progress import progress
 from torchiid.eval.results import load_layer
 from torchiid.eval.video import VideoPair, evaluate_video, frame_number, occlusion_index
 from torchiid.io.layers import OutputError, OutputSet, check_output_folder
@@ -63,8 +63,6 @@ def _load_reflectance(results: Path, index: int, name: str):
 
 def run_eval_video(args: argparse.Namespace) -> int:
     """``torchiid eval video FRAMES RESULTS [--flow DIR [--occlusions DIR]]``: exit status."""
-    from tqdm import tqdm
-
     if args.results_dir is None:
         raise ParameterError(
             "eval video needs two folders: the input frames (or video file) and the results "
@@ -93,9 +91,9 @@ def run_eval_video(args: argparse.Namespace) -> int:
     eval_flow = args.eval_flow or taken["method"].default
     space = args.space or taken["space"].default
     source = open_frames(args.dir)
-    show = progress_bars(args)
+    show = not args.no_progress  # a bar on a terminal, a line now and then in a log
     rows, failures, prev = [], 0, None
-    bar = tqdm(total=source.count, desc="frames", unit="frame", disable=not show, file=sys.stderr)
+    bar = progress(source.count, "frames", "frame", show=show, leave=True)
     try:
         for item in source:
             bar.update(1)

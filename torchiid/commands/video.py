@@ -17,8 +17,8 @@ from torchiid.commands.common import (
     add_parameter_options,
     finite_float,
     params_from_args,
-    progress_bars,
 )
+from torchiid.core.progress import progress
 
 if TYPE_CHECKING:
     from torchiid.params import Parameters
@@ -249,7 +249,7 @@ def run(args: argparse.Namespace) -> int:
                 f"{args.masks}: holds {len(masks)} masks but {args.input} has {source.count} "
                 "frames; give one mask per frame"
             )
-    show = progress_bars(args)
+    show = not args.no_progress  # a bar on a terminal, a line now and then in a log
 
     def tell(message: str) -> None:  # a line; above the progress bar while it shows
         tqdm.write(message, file=sys.stderr)
@@ -265,10 +265,7 @@ def run(args: argparse.Namespace) -> int:
             preview = PreviewWriter(target, args.fps or source.fps or 24.0, overwrite=True)
     video = VideoDecomposer(params, options)
     params_written = False
-    bar = tqdm(
-        total=source.count, desc="frames", unit="frame", disable=not show, file=sys.stderr,
-        leave=False,
-    )  # fmt: skip
+    bar = progress(source.count, "frames", "frame", show=show)
     tx: OutputSet | None = None
     where = str(args.input)
     try:

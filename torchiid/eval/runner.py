@@ -42,18 +42,17 @@ import csv
 import json
 import logging
 import statistics
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import torch
-from tqdm import tqdm
 
 from torchiid._version import __version__
 from torchiid.core.device import resolve_device
 from torchiid.core.exceptions import TorchiidError
+from torchiid.core.progress import progress
 from torchiid.eval.datasets import DATASETS, EvalDataset, Sample, check_dataset, open_dataset
 from torchiid.eval.methods import BASELINES, METHODS, method_parameters, run_method
 from torchiid.eval.options import OPTION_NAMES, EvalOptions
@@ -387,14 +386,12 @@ class _Run:
 
     def execute(self) -> EvalResult:
         write_json(self.out / "summary.json", self.summary("running"))
-        self.bar = tqdm(
-            total=len(self.ids),
+        self.bar = progress(
+            len(self.ids),
+            f"eval {self.runner.dataset}",
+            "img",
+            show=self.options.progress,
             initial=len(self.rows),
-            desc=f"eval {self.runner.dataset}",
-            unit="img",
-            disable=not self.options.progress,
-            file=sys.stderr,
-            leave=False,
         )
         self.csv_file = (self.out / "results.csv").open("a", newline="")
         self.writer = csv.writer(self.csv_file)
