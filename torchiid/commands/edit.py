@@ -200,7 +200,7 @@ def _load_saved(folder: Path, source: Path, image: torch.Tensor, need_stage1: bo
         if not path.is_file():
             raise TorchiidError(f"{path}: not found (--from needs the files of `decompose`)")
     info = saved_info(folder, stem) or {}
-    recorded = info.get("input_sha256")  # None: written before it was recorded, not checked
+    recorded = info.get("input_sha256")  # None: not recorded (another tool, an old file)
     if isinstance(recorded, str) and recorded != file_sha256(source):
         raise ImageError(
             f"{folder}: its {stem}-* layers are the decomposition of another file than "
