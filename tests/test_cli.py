@@ -11,6 +11,7 @@ import importlib.metadata
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -23,6 +24,8 @@ from skimage import data
 import torchiid
 from torchiid.cli import COMMANDS, build_parser, main
 from torchiid.core.exceptions import TorchiidError
+from torchiid.params import Parameters
+from torchiid.pipeline.compile_ahead import CompileAhead
 
 ROOT = Path(__file__).resolve().parents[1]
 FAST = ["--iterations", "1", "--no-progress"]
@@ -515,7 +518,14 @@ def test_the_first_compilation_of_the_kernels_is_a_note_above_the_bar(
 
     monkeypatch.setattr(model, "decompose", compiling)
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # a terminal: the bar is drawn
-    argv = ["decompose", str(photo / "cat.png"), "--iterations", "1"]
+    helpers = []  # Stage 2's compiling process (here a sleeper), one per compiling run
+
+    def sleeper(ahead):
+        helpers.append(ahead)
+        return [sys.executable, "-c", "import time; time.sleep(60)"]
+
+    monkeypatch.setattr(CompileAhead, "command", sleeper)
+    argv = ["decompose", str(photo / "cat.png"), "--iterations", "1", "--preset", "paper"]
     assert main([*argv, "-o", str(tmp_path / "a")]) == 0
     err = capsys.readouterr().err
     note = (
@@ -524,11 +534,21 @@ def test_the_first_compilation_of_the_kernels_is_a_note_above_the_bar(
     )
     assert err.count(note) == 1
     assert f"{note}\n" in err and "images:" in err.split(note)[1]  # a line; the bar below it
+    assert len(helpers) == 1 and helpers[0].parameters() == Parameters.preset("paper").replace(
+        iterations=1
+    )  # the run's parameters
+    assert helpers[0].process.wait(timeout=10) == -signal.SIGTERM  # stopped with the run
     assert main([*argv, "-o", str(tmp_path / "b"), "-q"]) == 0
     assert capsys.readouterr().err == ""
+    assert len(helpers) == 2  # -q keeps the note to itself, not the helper
+    with monkeypatch.context() as gpu:  # a run on CUDA: its solves need no CPU kernels
+        gpu.setattr("torch.cuda.is_initialized", lambda: True)
+        assert main([*argv, "-o", str(tmp_path / "gpu"), "-q"]) == 0
+    assert len(helpers) == 2
     monkeypatch.setattr(model, "decompose", real)  # the kernels are in the cache: no note
     assert main([*argv, "-o", str(tmp_path / "c")]) == 0
     assert "compiling" not in capsys.readouterr().err
+    assert len(helpers) == 2  # nothing compiles: no helper
 
 
 def test_commands_are_registered_in_one_table():

@@ -31,10 +31,14 @@ import threading
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 from torchiid._version import __version__
 from torchiid.commands.common import run_environment, run_options, verbosity_options
+
+if TYPE_CHECKING:
+    from torchiid.params import Parameters
+    from torchiid.pipeline.compile_ahead import CompileAhead
 
 __all__ = ["COMMANDS", "Command", "build_parser", "console_main", "main"]
 
@@ -191,9 +195,11 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
             torch_threads = torch.get_num_threads()
             torch.set_num_threads(threads)
         from torchiid.core.first_compile import notify_first_compile
+        from torchiid.pipeline.compile_ahead import compiling_ahead
 
-        with notify_first_compile(lambda: _compiling_note(args.quiet)):
-            return _module(args.command).run(args)
+        with compiling_ahead(lambda: _run_params(args)) as ahead:
+            with notify_first_compile(lambda: _first_compilation(args.quiet, ahead)):
+                return _module(args.command).run(args)
     except KeyboardInterrupt:
         print("torchiid: interrupted", file=sys.stderr)
         return 130
@@ -247,8 +253,17 @@ def _notes(shown: Callable[..., None], quiet: bool) -> Callable[..., None]:
     return show
 
 
-def _compiling_note(quiet: bool) -> None:
-    """Say that the kernels are compiling (the first run in an environment), above any bar."""
+def _first_compilation(quiet: bool, ahead: CompileAhead) -> None:
+    """The kernels compile (the first run in an environment): a note says so, above any bar.
+
+    A run on the CPU also has Stage 2's kernels compiled in a second process meanwhile
+    (:mod:`torchiid.pipeline.compile_ahead`); a run on a GPU solves there and does not need
+    them (Stage 0's CPU kernels are what compile).
+    """
+    import torch
+
+    if not torch.cuda.is_initialized():
+        ahead.start()
     if quiet:
         return
     from tqdm import tqdm
@@ -256,6 +271,24 @@ def _compiling_note(quiet: bool) -> None:
     from torchiid.core.first_compile import COMPILING
 
     tqdm.write(f"torchiid: note: {COMPILING}", file=sys.stderr)
+
+
+def _run_params(args: argparse.Namespace) -> Parameters | None:
+    """The run's parameters where the command takes them (``None``: it takes none).
+
+    A command with ``--preset`` alone (``app``: the page's first preset) gives that preset.
+    """
+    if getattr(args, "preset", None) is None:
+        return None
+    from torchiid.commands.common import params_from_args
+    from torchiid.params import Parameters
+
+    try:
+        if hasattr(args, "params"):
+            return params_from_args(args)
+        return Parameters.preset(args.preset)
+    except Exception:  # noqa: BLE001 - the command itself reports bad parameters
+        return None
 
 
 def _module(name: str):
