@@ -541,14 +541,40 @@ def test_the_first_compilation_of_the_kernels_is_a_note_above_the_bar(
     assert main([*argv, "-o", str(tmp_path / "b"), "-q"]) == 0
     assert capsys.readouterr().err == ""
     assert len(helpers) == 2  # -q keeps the note to itself, not the helper
-    with monkeypatch.context() as gpu:  # a run on CUDA: its solves need no CPU kernels
-        gpu.setattr("torch.cuda.is_initialized", lambda: True)
-        assert main([*argv, "-o", str(tmp_path / "gpu"), "-q"]) == 0
-    assert len(helpers) == 2
     monkeypatch.setattr(model, "decompose", real)  # the kernels are in the cache: no note
     assert main([*argv, "-o", str(tmp_path / "c")]) == 0
     assert "compiling" not in capsys.readouterr().err
     assert len(helpers) == 2  # nothing compiles: no helper
+
+
+@pytest.mark.parametrize(
+    ("options", "cuda", "started"),
+    [
+        ({"device": "cpu", "preset": "default"}, True, True),
+        ({"device": "auto", "preset": "default"}, False, True),
+        ({"device": "auto", "preset": "default"}, True, False),  # solved on the GPU
+        ({"device": "cuda", "preset": "default"}, True, False),
+        ({"device": "cpu"}, False, False),  # no parameters: no Stage 2 (features)
+    ],
+)
+def test_stage2_compiles_ahead_only_for_a_run_that_solves_it_on_the_cpu(
+    options, cuda, started, monkeypatch
+):
+    import argparse
+
+    from torchiid import cli
+
+    monkeypatch.setattr("torch.cuda.is_available", lambda: cuda)
+
+    class Ahead:
+        starts = 0
+
+        def start(self):
+            self.starts += 1
+
+    ahead = Ahead()
+    cli._first_compilation(argparse.Namespace(quiet=True, **options), ahead)
+    assert ahead.starts == int(started)
 
 
 def test_commands_are_registered_in_one_table():

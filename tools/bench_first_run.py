@@ -85,7 +85,7 @@ def main() -> None:
     print("| | wall s, median (range) | CPU s with children | peak MiB of the process |")
     print("| --- | --- | --- | --- |")
     for ahead, name in (("0", "one process (`TORCHIID_COMPILE_AHEAD=0`)"),
-                        ("1", "with the helper (default)")):  # fmt: skip
+                        ("1", "with the second process (the default)")):  # fmt: skip
         cols = []
         for j in range(3):
             xs = [r[j] for r in results[ahead]]

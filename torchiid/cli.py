@@ -198,7 +198,7 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
         from torchiid.pipeline.compile_ahead import compiling_ahead
 
         with compiling_ahead(lambda: _run_params(args)) as ahead:
-            with notify_first_compile(lambda: _first_compilation(args.quiet, ahead)):
+            with notify_first_compile(lambda: _first_compilation(args, ahead)):
                 return _module(args.command).run(args)
     except KeyboardInterrupt:
         print("torchiid: interrupted", file=sys.stderr)
@@ -253,24 +253,32 @@ def _notes(shown: Callable[..., None], quiet: bool) -> Callable[..., None]:
     return show
 
 
-def _first_compilation(quiet: bool, ahead: CompileAhead) -> None:
+def _first_compilation(args: argparse.Namespace, ahead: CompileAhead) -> None:
     """The kernels compile (the first run in an environment): a note says so, above any bar.
 
-    A run on the CPU also has Stage 2's kernels compiled in a second process meanwhile
-    (:mod:`torchiid.pipeline.compile_ahead`); a run on a GPU solves there and does not need
-    them (Stage 0's CPU kernels are what compile).
+    A command that runs Stage 2 on the CPU also has Stage 2's kernels compiled in a second
+    process meanwhile (:mod:`torchiid.pipeline.compile_ahead`); a run on a GPU solves there,
+    and a command without parameters (``features``) has no Stage 2.
     """
-    import torch
-
-    if not torch.cuda.is_initialized():
+    if getattr(args, "preset", None) is not None and _on_cpu(args):
         ahead.start()
-    if quiet:
+    if args.quiet:
         return
     from tqdm import tqdm
 
     from torchiid.core.first_compile import COMPILING
 
     tqdm.write(f"torchiid: note: {COMPILING}", file=sys.stderr)
+
+
+def _on_cpu(args: argparse.Namespace) -> bool:
+    """Whether the run solves on the CPU (``--device``; ``auto``: when there is no CUDA)."""
+    device = getattr(args, "device", None) or "cpu"
+    if device == "auto":
+        import torch
+
+        return not torch.cuda.is_available()
+    return device == "cpu"
 
 
 def _run_params(args: argparse.Namespace) -> Parameters | None:

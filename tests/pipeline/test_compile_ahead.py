@@ -13,6 +13,8 @@ import time
 import pytest
 
 from torchiid.params import Parameters
+from torchiid.params.presets import PRESETS, VARIANTS
+from torchiid.pipeline import compile_ahead
 from torchiid.pipeline.compile_ahead import (
     ENVIRONMENT_VARIABLE,
     CompileAhead,
@@ -31,12 +33,31 @@ def test_the_helper_gets_the_run_s_threads_and_parameters(monkeypatch):
     cmd = CompileAhead(paper, threads=3).command()
     assert cmd[:3] == [sys.executable, "-m", "torchiid.pipeline.compile_ahead"]
     assert cmd[cmd.index("--threads") + 1] == "3"
+    assert cmd[cmd.index("--parent") + 1] == str(os.getpid())  # it ends with this run
     assert Parameters.from_dict(json.loads(cmd[cmd.index("--params") + 1])) == paper
     # the parameters may come from a function, asked when the helper starts
     asked = []
     later = CompileAhead(lambda: asked.append(1) or None, threads=2)
     assert asked == []
     assert "--params" not in later.command() and asked == [1]
+
+
+def test_no_helper_for_parameters_that_never_run_stage2(monkeypatch):
+    monkeypatch.delenv(ENVIRONMENT_VARIABLE, raising=False)
+    assert CompileAhead(Parameters().variant("baseline1"), threads=2).command() is None
+    assert CompileAhead(Parameters().variant("baseline2"), threads=2).command() is not None
+
+
+@pytest.mark.parametrize("name", [*PRESETS, *VARIANTS])
+def test_the_helper_runs_stage2_of_every_preset_and_variant(name, monkeypatch):
+    monkeypatch.setattr(os, "nice", lambda increment: 0)  # not this test process's priority
+    watched = []
+    monkeypatch.setattr(compile_ahead, "_exit_with", watched.append)
+    p = Parameters.preset(name) if name in PRESETS else Parameters().variant(name)
+    p = p.replace(iterations=2)
+    argv = ["--threads", "1", "--params", json.dumps(p.to_dict()), "--parent", "12345"]
+    assert compile_ahead.main(argv) == 0
+    assert watched == [12345]  # it ends with the run that started it
 
 
 def test_no_helper_on_one_thread_or_when_switched_off(monkeypatch):
@@ -70,6 +91,47 @@ def test_a_helper_that_ends_is_reaped_while_the_run_goes_on(monkeypatch):
         while ahead.process.returncode is None and time.monotonic() < deadline:
             time.sleep(0.05)  # no poll() here: the helper's own waiting thread reaps it
         assert ahead.process.returncode == 0  # no zombie left for a long-running app
+
+
+def test_nothing_starts_after_the_run_has_ended(monkeypatch):
+    monkeypatch.setattr(CompileAhead, "command", lambda self: SLEEPER)
+    with compiling_ahead(threads=2) as ahead:
+        pass
+    assert ahead.start() is False and ahead.process is None  # a compilation after close
+
+
+def test_the_helper_exits_when_its_run_is_gone(tmp_path):
+    # a run killed outright: the helper's parent ends without stopping it
+    code = textwrap.dedent(
+        """
+        import os, subprocess, sys
+        child = subprocess.Popen([sys.executable, "-c",
+            "from torchiid.pipeline import compile_ahead as c; import sys, time; "
+            f"c._exit_with({os.getpid()}); time.sleep(60)"], stdout=subprocess.DEVNULL)
+        print(child.pid, flush=True)
+        """
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    pid = int(run.stdout.split()[0])
+    deadline = time.monotonic() + 20
+    while _running(pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    if _running(pid):
+        os.kill(pid, signal.SIGKILL)
+        pytest.fail("the helper outlived the run that started it")
+
+
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` runs (an exited one that nobody has reaped yet does not)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rpartition(")")[2].split()[0] != "Z"
+    except OSError:
+        return True
 
 
 def test_a_helper_that_cannot_start_leaves_the_run_alone(monkeypatch, tmp_path):
