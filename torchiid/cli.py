@@ -272,13 +272,13 @@ def _first_compilation(args: argparse.Namespace, ahead: CompileAhead) -> None:
 
 
 def _on_cpu(args: argparse.Namespace) -> bool:
-    """Whether the run solves on the CPU (``--device``; ``auto``: when there is no CUDA)."""
-    device = getattr(args, "device", None) or "cpu"
-    if device == "auto":
-        import torch
+    """Whether the run solves on the CPU (its ``--device``, as the command resolves it)."""
+    from torchiid.core.device import resolve_device
 
-        return not torch.cuda.is_available()
-    return device == "cpu"
+    try:
+        return resolve_device(getattr(args, "device", None) or "cpu").type == "cpu"
+    except Exception:  # noqa: BLE001 - a device that cannot be had: the command says so
+        return False
 
 
 def _run_params(args: argparse.Namespace) -> Parameters | None:

@@ -50,7 +50,10 @@ def test_no_helper_for_parameters_that_never_run_stage2(monkeypatch):
 
 @pytest.mark.parametrize("name", [*PRESETS, *VARIANTS])
 def test_the_helper_runs_stage2_of_every_preset_and_variant(name, monkeypatch):
+    import torch
+
     monkeypatch.setattr(os, "nice", lambda increment: 0)  # not this test process's priority
+    monkeypatch.setattr(torch, "set_num_threads", lambda n: None)  # nor its threads
     watched = []
     monkeypatch.setattr(compile_ahead, "_exit_with", watched.append)
     p = Parameters.preset(name) if name in PRESETS else Parameters().variant(name)
