@@ -15,8 +15,9 @@ up and then ``--repeats`` times:
 - decode: read each PNG from disk as the command does (``load_image`` and the file's SHA-256);
 - the steps :func:`torchiid.model.decompose` times itself: CNN patch features, proposals
   (selective search), PCA / mid-level features, segments, shading solve 1..k, reflectance
-  solve 1..k; then the rest of its wall time (the working-resolution inputs and the
-  full-resolution layers);
+  solve 1..k (with the preset's ``coarse_scale`` below 1, solves 1..k-1 run on the image at
+  that scale); then the rest of its wall time (the working-resolution inputs, the coarse
+  inputs and the full-resolution layers);
 - outputs: every file the command writes for each photo (``write_outputs`` into an
   ``OutputSet``, put in place).
 

@@ -32,6 +32,7 @@ from torchiid.core.exceptions import ParameterError
 from torchiid.features.semantic import SemanticFeatures, semantic_features
 from torchiid.params import PRESETS, Parameters
 from torchiid.pipeline.alternation import Alternation, warn_unconverged
+from torchiid.pipeline.coarse import coarse_alternations, coarse_size, hand_over
 from torchiid.pipeline.inputs import WorkingInputs, working_inputs
 from torchiid.pipeline.layers import (
     FullLayers,
@@ -88,13 +89,18 @@ def decompose(
         image: ``(B, 3, H, W)`` or ``(3, H, W)`` **linear** RGB, values ``>= 0`` (typically in
             ``[0, 1]``), sides of at least ``params.features.patch_size`` pixels. Images of a
             batch are solved together as one block-diagonal system.
-        params: :class:`~torchiid.params.Parameters` (default: the ``default`` preset).
+        params: :class:`~torchiid.params.Parameters` (default: the ``default`` preset). With
+            ``params.coarse_scale`` below 1 (the ``default``: 0.5) the alternations before the
+            last run on the image at that scale and their shading starts the last one
+            (:mod:`torchiid.pipeline.coarse`), unless ``init``, ``temporal`` or
+            ``schedule_start`` give the start.
         mask: optional ``(B, 1, H, W)`` (or ``(H, W)``, ``(B, H, W)``) tensor, bool or numbers:
             nonzero is inside, as everywhere in torchiid (:func:`~torchiid.core.check.as_mask`);
             every prior is restricted to the pixels inside and the outside is returned as 0.
         features: precomputed Stage 0 features (at the working resolution), e.g. to run
             several parameter sets on one image.
-        return_iterations: keep every alternation's ``σ, ρ, R, S`` (paper Fig. 5).
+        return_iterations: keep every alternation's ``σ, ρ, R, S`` (paper Fig. 5; those of
+            coarse alternations brought up to the working resolution).
         return_stage1: also bring the last Stage 1 layers ``σ, ρ`` to full resolution
             (``False`` saves two full-resolution layers on large photos).
         progress: called as ``progress(stage, k, total)`` with stage ``"features"`` (``k = 0``)
@@ -161,15 +167,25 @@ def decompose(
     total = params.iterations - work.first + 1  # the alternations this call runs
     if progress is not None:
         progress("features", 0, total)
-    # k alternations of Stage 1 (L2 shading) and Stage 2 (L1 reflectance)
+
+    def done(k: int, alternations: Alternation) -> None:
+        _check_finite_solves(alternations.solves, params, k)
+        if progress is not None:
+            progress("iteration", k - work.first + 1, total)
+
+    # k alternations of Stage 1 (L2 shading) and Stage 2 (L1 reflectance); with coarse_scale
+    # below 1, all but the last on the image at that scale, the last starting where they end
+    first = work.first
     run = Alternation(work, features, params, keep_layers=return_iterations)
-    for k in range(work.first, params.iterations + 1):
+    size = coarse_size(work, params)
+    if size is not None:
+        hand_over(coarse_alternations(work, features, params, size, run.keep_layers, done), run)
+        first = params.iterations
+    for k in range(first, params.iterations + 1):
         shading, reflectance = params.alternation(k)  # the §3.4 schedule's weights
         run.shading_step(k, shading)
         run.reflectance_step(k, reflectance)
-        _check_finite_solves(run.solves, params, k)
-        if progress is not None:
-            progress("iteration", k - work.first + 1, total)
+        done(k, run)
     times.update(run.times)
     if params.converge:
         # the caller of decompose, under torch's no_grad wrapper

@@ -62,10 +62,10 @@ def test_partial_json_keeps_base(tmp_path):
 @pytest.mark.parametrize("preset", ["default", "converged"])
 def test_a_file_written_before_the_groups_loads_unchanged(preset, caplog):
     # complete records written by the flat Parameters (no version): every value as written,
-    # and the parameters added since (t_x, t_x_sigma) at the values that version ran, with a
-    # warning
+    # and the parameters added since (t_x, t_x_sigma, coarse_scale) at the values that
+    # version ran, with a warning
     path = DATA / f"before-groups-{preset}-params.json"
-    expected = Parameters.preset(preset).replace(t_x_sigma=3.0)
+    expected = Parameters.preset(preset).replace(t_x_sigma=3.0, coarse_scale=1.0)
     if preset == "converged":
         expected = expected.replace(max_side=300)
     else:  # the values the default had when the file was written
@@ -73,9 +73,9 @@ def test_a_file_written_before_the_groups_loads_unchanged(preset, caplog):
     with caplog.at_level("WARNING", logger="torchiid.params"):
         assert Parameters.from_json(path) == expected
         assert Parameters.from_json(path, base=Parameters.preset("texture")) == expected
-    assert caplog.text.count("it names every parameter but t_x") == 2
+    assert caplog.text.count("it names every parameter but coarse_scale, t_x") == 2
     assert json.loads(path.read_text()) == {
-        k: v for k, v in expected.to_dict().items() if k not in ("t_x", "t_x_sigma")
+        k: v for k, v in expected.to_dict().items() if k not in ("t_x", "t_x_sigma", "coarse_scale")
     }
 
 
@@ -99,7 +99,7 @@ def test_a_versioned_file_replays_what_its_version_ran(tmp_path, caplog):
     }  # fmt: skip
     assert set(later) == {
         "lambda_s", "t_e", "t_d", "t_h", "bregman_gap_tol", "bregman_theta_floor", "base_mix",
-        "t_x", "t_x_sigma",
+        "t_x", "t_x_sigma", "coarse_scale",
     }  # fmt: skip
     assert p == base.replace(iterations=3, t_i=1.5, **later)
     assert (p.shading.base_mix, p.shading.lambda_s, p.reflectance.bregman_gap_tol) == (1.0, 0, 0)

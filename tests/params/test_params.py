@@ -42,6 +42,7 @@ def test_default_preset_differs_from_paper_only_where_tuned():
         "bregman_cg_iter",
         "t_e",  # nor is S_l's cut beside colour edges
         "base_mix",  # the matting base of later alternations mixes in the image
+        "coarse_scale",  # all but the last alternation at half the size (a solver setting)
     }
     # the no-argument object is what decompose() does by default
     assert Parameters.preset("default") == Parameters()

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torchiid.params import Parameters
 from torchiid.stages.config import ReflectanceProblem, ShadingProblem
 
-__all__ = ["SemanticFeatures", "semantic_features", "patch_mean_rgb"]
+__all__ = ["SemanticFeatures", "semantic_features", "patch_mean_rgb", "pca_features"]
 
 
 @dataclass(frozen=True)
@@ -83,7 +83,7 @@ def patch_mean_rgb(image: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
     return (s / area).transpose(1, 2)
 
 
-def _pca_features(mid, dim: int) -> torch.Tensor:
+def pca_features(mid, dim: int) -> torch.Tensor:
     """``g̊`` with ``dim`` channels for every image of a ``MidLevelBatch``.
 
     A featureless image (fewer proposals than ``dim``, e.g. one constant colour) gets the
@@ -150,7 +150,7 @@ def semantic_features(image: torch.Tensor, params: Parameters) -> SemanticFeatur
             if need_sim:
                 sim = mid.similarity(shading_stencil(h, w, device=image.device))
             if need_gpca:
-                gpca = _pca_features(mid, f.proposal_pca_dim)
+                gpca = pca_features(mid, f.proposal_pca_dim)
             times["mid-level g"] = time.perf_counter() - t0
         if seg_result is not None:
             t0 = time.perf_counter()

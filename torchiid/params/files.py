@@ -37,6 +37,7 @@ ADDED_SINCE: dict[str, dict[str, Any]] = {
     "0.12.0": {"base_mix": 1.0},
     "1.0.0": {"t_x": 0.0},
     "1.1.0": {"t_x_sigma": 3.0},
+    "1.13.0": {"coarse_scale": 1.0},
 }
 
 

@@ -8,7 +8,8 @@ __all__ = ["PRESETS", "VARIANTS", "ALL_ON"]
 #: The values' evidence (MIT-Berkeley scores, times) is in the documentation's Method page.
 PRESETS: dict[str, dict[str, Any]] = {
     # the paper's energy with two additions that hold in cross-validation (S_l's cut beside
-    # colour edges, a mixed matting base) and early-stopped solvers (= Parameters())
+    # colour edges, a mixed matting base), early-stopped solvers and the alternations before
+    # the last at 3/4 of the working resolution (= Parameters())
     "default": {},
     # printed matter (documents, labels, packaging, posters): S_l does not tie the pixels of
     # thin strokes either, so black text on white paper stays in the reflectance
@@ -26,12 +27,14 @@ PRESETS: dict[str, dict[str, Any]] = {
         "warm_cg_max_iter": 0,
         "bregman_iter": 4,
         "bregman_cg_iter": 5,
+        "coarse_scale": 1.0,
     },
     # every solve to its tolerance (the caps are safety caps: a ConvergenceWarning if hit):
     # multigrid PCG to 1e-4, Split-Bregman to a duality gap of 0.5% with residual balancing
     # and a warm Bregman state; the energy re-tuned for solves that reach their minimum
     "converged": {
         "converge": True,
+        "coarse_scale": 1.0,
         "shading_preconditioner": "multigrid",
         "cg_max_iter": 3000,
         "warm_cg_max_iter": 0,

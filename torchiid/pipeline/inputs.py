@@ -24,6 +24,7 @@ __all__ = [
     "check_inputs",
     "warm_start",
     "temporal_prior",
+    "downsampled",
 ]
 
 
@@ -85,7 +86,7 @@ def working_inputs(
         flags = {"return_stage1": return_stage1, "return_iterations": return_iterations}
         check_memory(big_h, big_w, params, image.shape[0], **flags)
     size = working_size(big_h, big_w, params.output.max_side)
-    img, msk = _downsampled(image, mask, size)
+    img, msk = downsampled(image, mask, size)
     patch = params.features.patch_size
     if min(size) < patch:
         needed = -(-patch * max(big_h, big_w) // min(big_h, big_w))  # the longer side for it
@@ -115,7 +116,7 @@ def _first_alternation(schedule_start: int, params: Parameters) -> int:
     return schedule_start
 
 
-def _downsampled(
+def downsampled(
     image: torch.Tensor, mask: torch.Tensor | None, size: tuple[int, int]
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """The image and the mask at ``size``, the outside blacked out (it must not enter a prior)."""
