@@ -113,10 +113,15 @@ def write_outputs(
     if rho:
         info["files"][f"{stem}-rho.exr"] = "last Stage 1 reflectance rho, float32 linear OpenEXR"
     if iterations:
+        coarse = {r.alternation: r.size for r in result.solves if r.size is not None}
         for k in range(1, len(result.iterations) + 1):
+            where = "at the working resolution"
+            if k in coarse:  # an alternation before the last, with coarse_scale below 1
+                h, w = coarse[k]
+                where = f"solved at {w}x{h}, brought up to the working resolution"
             for name in ("sigma", "rho", "R", "S"):
                 info["files"][f"{stem}-iter{k}-{name}.png"] = (
-                    f"alternation {k}'s {name} at the working resolution, 8-bit sRGB"
+                    f"alternation {k}'s {name} {where}, 8-bit sRGB"
                 )
     write_layers(
         tx.out,

@@ -9,7 +9,7 @@ __all__ = ["PRESETS", "VARIANTS", "ALL_ON"]
 PRESETS: dict[str, dict[str, Any]] = {
     # the paper's energy with two additions that hold in cross-validation (S_l's cut beside
     # colour edges, a mixed matting base), early-stopped solvers and the alternations before
-    # the last at 3/4 of the working resolution (= Parameters())
+    # the last at half the working resolution (= Parameters())
     "default": {},
     # printed matter (documents, labels, packaging, posters): S_l does not tie the pixels of
     # thin strokes either, so black text on white paper stays in the reflectance

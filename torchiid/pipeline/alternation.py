@@ -27,10 +27,12 @@ __all__ = ["Alternation", "shading_report", "reflectance_report", "warn_unconver
 
 
 class Alternation:
-    """The alternations on one batch of images at the working resolution.
+    """The alternations on one batch of images at one size.
+
+    That size is the working resolution's, or the coarse size of :mod:`torchiid.pipeline.coarse`.
 
     Args:
-        work: the inputs at the working resolution.
+        work: the inputs at that size.
         features: Stage 0's features of ``work.image``.
         params: the parameters (the stages' groups come from :meth:`Parameters.alternation`).
         keep_layers: keep every alternation's layers (:attr:`layers`).

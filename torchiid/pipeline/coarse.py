@@ -4,8 +4,11 @@ The §3.4 schedule's alternations refine one answer: each starts from the previo
 (the shading PCG's warm start) and reflectance (the next matting base and the Split-Bregman
 start). With ``params.coarse_scale`` below 1 the alternations ``1 .. k − 1`` run on the image
 brought to that fraction of the working resolution's sides, and their last shading and
-reflectance, brought back up, start alternation ``k`` at the working resolution. The energy
-of every alternation is the paper's; only where its solves start changes.
+shading, brought back up, starts the shading solve of alternation ``k`` at the working
+resolution, whose Stage 2 starts from its ``ρ`` as a first alternation's does. Every
+alternation solves the paper's terms with the §3.4 weights; at the coarse size the terms
+counted per patch (``S_c``) and per segment (``C``) weigh about four times more against the
+per-pixel ones, whose pixels are a quarter as many at half size.
 
 Stage 0 runs once, at the working resolution: the coarse alternations take its features
 resampled (:func:`coarse_features`), so the CNN and the proposals are not run twice.
@@ -32,7 +35,7 @@ from torchiid.pipeline.inputs import WorkingInputs, downsampled
 from torchiid.pipeline.layers import final_shading, log_luminance
 from torchiid.pipeline.results import IterationLayers
 from torchiid.priors.shading_terms import shading_stencil
-from torchiid.resample import GuidedUpsampler
+from torchiid.resample import GuidedUpsampler, downsample
 
 __all__ = ["coarse_size", "coarse_features", "coarse_alternations", "hand_over"]
 
@@ -43,13 +46,16 @@ Done = Callable[[int, Alternation], None]
 def coarse_size(work: WorkingInputs, params: Parameters) -> tuple[int, int] | None:
     """The size the alternations before the last run at, or ``None`` for the working size.
 
-    ``None`` when ``params.coarse_scale`` is 1, for a single alternation, for a warm start, a
-    temporal prior or a later ``schedule_start``, and when the coarse image's shorter side
-    would be below ``params.features.patch_size``.
+    ``None`` when ``params.coarse_scale`` is 1, for a single alternation, without a shading
+    stage (whose solve the coarse run starts), for a warm start, a temporal prior or a later
+    ``schedule_start``, and when the coarse image's shorter side would be below
+    ``params.features.patch_size``.
     """
     scale = params.coarse_scale
     if scale >= 1 or params.iterations < 2 or work.first != 1:
         return None
+    if not params.alternation(params.iterations)[0].active:
+        return None  # no shading solve to start (baselines 2 and 3): nothing to hand over
     if work.log_shading0 is not None or work.reflectance0 is not None or work.temporal is not None:
         return None
     h, w = work.size
@@ -70,24 +76,28 @@ def _nearest(labels: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
 
 
 def coarse_features(
-    features: SemanticFeatures, size: tuple[int, int], params: Parameters
+    features: SemanticFeatures,
+    working: tuple[int, int],
+    size: tuple[int, int],
+    params: Parameters,
 ) -> SemanticFeatures:
-    """Stage 0's features of the working image, for the same image at ``size``.
+    """Stage 0's features of the working image (``working``, ``(H, W)``), for it at ``size``.
 
     The patch descriptors stay (their centres move with the image); the proposals' atoms and
     the segments take the label under each coarse pixel's centre, and the mid-level maps
     (``S_m``'s similarities, ``B``'s PCA features) are made again from those atoms, as Stage 0
-    makes them.
+    makes them. Features without the atoms (``midlevel`` ``None``, as a video's warped ones)
+    have those maps area-averaged instead.
     """
     h, w = size
     centers = features.patch_centers
     if centers is not None:
-        big_h, big_w = _feature_size(features)
-        scale = torch.tensor([h / big_h, w / big_w], device=centers.device)
+        scale = torch.tensor([h / working[0], w / working[1]], device=centers.device)
         centers = (centers.to(torch.float64) * scale).round().long()
         top = torch.tensor([h - 1, w - 1], device=centers.device)
         centers = torch.minimum(centers.clamp_min(0), top)
     mid = features.midlevel
+    similarity, gpca = features.similarity, features.gpca
     if isinstance(mid, MidLevelBatch):
         items = []
         for m in mid:
@@ -95,33 +105,16 @@ def coarse_features(
             sizes = torch.bincount(labels.flatten(), minlength=m.atom_g.shape[0])
             items.append(MidLevelFeatures(labels, m.atom_g, sizes.to(m.atom_sizes.dtype)))
         mid = MidLevelBatch(tuple(items))
-    similarity = gpca = None
-    if features.similarity is not None:
-        similarity = _need_mid(mid).similarity(shading_stencil(h, w, device=_device(features)))
-    if features.gpca is not None:
-        gpca = pca_features(_need_mid(mid), params.features.proposal_pca_dim)
+        if similarity is not None:
+            similarity = mid.similarity(shading_stencil(h, w, device=similarity.device))
+        if gpca is not None:
+            gpca = pca_features(mid, params.features.proposal_pca_dim)
+    else:
+        mid = None
+        similarity = None if similarity is None else downsample(similarity, size)
+        gpca = None if gpca is None else downsample(gpca, size)
     segments = None if features.segments is None else _nearest(features.segments, size)
     return SemanticFeatures(centers, features.patch_features, similarity, gpca, segments, mid, {})
-
-
-def _feature_size(features: SemanticFeatures) -> tuple[int, int]:
-    for x in (features.similarity, features.gpca, features.segments):
-        if x is not None:
-            return int(x.shape[-2]), int(x.shape[-1])
-    if isinstance(features.midlevel, MidLevelBatch):
-        return features.midlevel[0].shape
-    raise ValueError("the features hold no map to take the working size from")
-
-
-def _device(features: SemanticFeatures) -> torch.device:
-    x = features.similarity if features.similarity is not None else features.gpca
-    return x.device if x is not None else torch.device("cpu")
-
-
-def _need_mid(mid: object) -> MidLevelBatch:
-    if not isinstance(mid, MidLevelBatch):
-        raise ValueError("the mid-level maps cannot be resampled without Stage 0's atoms")
-    return mid
 
 
 def coarse_inputs(work: WorkingInputs, size: tuple[int, int]) -> WorkingInputs:
@@ -141,7 +134,8 @@ def coarse_alternations(
     """Alternations ``1 .. k − 1`` at ``size``; ``done(k, run)`` after each."""
     t0 = time.perf_counter()
     low = coarse_inputs(work, size)
-    run = Alternation(low, coarse_features(features, size, params), params, keep_layers)
+    low_features = coarse_features(features, work.size, size, params)
+    run = Alternation(low, low_features, params, keep_layers)
     run.times["coarse inputs"] = time.perf_counter() - t0
     for k in range(1, params.iterations):
         shading, reflectance = params.alternation(k)
@@ -151,6 +145,19 @@ def coarse_alternations(
     return run
 
 
+def _inside_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """``x`` with the pixels outside ``mask`` set to each image's and channel's mean inside.
+
+    Outside a mask a layer means nothing (0, or the log of the floor); a part of the mask too
+    thin to survive at the coarse size takes the mean of the rest instead.
+    """
+    if mask is None:
+        return x
+    inside = mask.to(x.dtype)
+    mean = (x * inside).sum((2, 3), keepdim=True) / inside.sum((2, 3), keepdim=True).clamp_min(1)
+    return torch.where(mask, x, mean)
+
+
 def _up(
     x: torch.Tensor, size: tuple[int, int], mask: torch.Tensor | None, big_mask: torch.Tensor | None
 ) -> torch.Tensor:
@@ -158,10 +165,11 @@ def _up(
     if mask is None:
         return F.interpolate(x, size=size, mode="bilinear", align_corners=False)
     inside = mask.to(x.dtype)
+    x = _inside_mean(x, mask)
     num = F.interpolate(x * inside, size=size, mode="bilinear", align_corners=False)
     den = F.interpolate(inside, size=size, mode="bilinear", align_corners=False)
-    near = F.interpolate(x, size=size, mode="nearest")  # where no coarse pixel inside is near
-    out = torch.where(den > 1e-6, num / den.clamp_min(1e-6), near)
+    far = F.interpolate(x, size=size, mode="nearest")  # no coarse pixel inside is near
+    out = torch.where(den > 1e-6, num / den.clamp_min(1e-6), far)
     return out if big_mask is None else out * big_mask
 
 
@@ -174,8 +182,8 @@ def hand_over(coarse: Alternation, run: Alternation) -> None:
     warm start (``decompose(init=...)``) does. Stage 2 of that alternation starts from its
     ``ρ`` with a zero Bregman variable, and its matting base is the smoothed image, as in a
     first alternation: what the coarse run could not resolve (thin strokes, fine print) is
-    decided at the working resolution. The coarse solves' reports and times come first in
-    ``run``'s, and the kept layers are brought up too.
+    decided at the working resolution. The coarse solves' reports (with their size) and times
+    come first in ``run``'s, and the kept layers are brought up too.
     """
     params, low, work = run.params, coarse.work, run.work
     size = work.size
@@ -185,15 +193,16 @@ def hand_over(coarse: Alternation, run: Alternation) -> None:
         # outside the coarse mask the shading means nothing (I = R = 0): those pixels stay out
         weight = None if low.mask is None else low.mask.to(shading.dtype)
         guide = log_luminance(work.image, dark)
+        log_low = _inside_mean(shading.clamp_min(floor).log(), low.mask)
         up = GuidedUpsampler(
-            shading.clamp_min(floor).log(), log_luminance(low.image, dark), size,
-            out.guide_radius, out.guide_eps, weight,
+            log_low, log_luminance(low.image, dark), size, out.guide_radius, out.guide_eps,
+            weight,
         )  # fmt: skip
         log_s = up.full(lambda rows: guide[:, :, rows])
         if work.mask is not None:
             log_s = log_s * work.mask
         run.work = replace(work, log_shading0=log_s.contiguous())
-    run.solves[:0] = coarse.solves
+    run.solves[:0] = [replace(r, size=low.size) for r in coarse.solves]
     run.times = {**coarse.times, **run.times}
     low_mask, mask = low.mask, work.mask
 

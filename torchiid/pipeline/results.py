@@ -54,6 +54,8 @@ class SolveReport:
             :class:`~torchiid.solvers.split_bregman.SplitBregmanResult`); ``None`` otherwise.
             A solve stopped at its cap was last measured one iterate before the one it
             returns, so its line does not print it.
+        size: ``(h, w)`` of the image the solve ran on where it is not the working size (the
+            alternations before the last with ``coarse_scale`` below 1), else ``None``.
     """
 
     stage: str
@@ -66,6 +68,7 @@ class SolveReport:
     converged: bool
     measure: str = "residual"
     distance: float | None = None
+    size: tuple[int, int] | None = None
 
     @property
     def capped(self) -> bool:
@@ -82,8 +85,9 @@ class SolveReport:
         within = ""
         if self.distance is not None and self.converged:  # certified for the returned R
             within = f", R within {self.distance:.2%} of the minimiser"
+        at = "" if self.size is None else f" (at {self.size[1]}x{self.size[0]})"
         return (
-            f"{self.stage} {self.alternation}: {self.iterations} iterations, "
+            f"{self.stage} {self.alternation}{at}: {self.iterations} iterations, "
             f"{self.measure} {self.residual:.2g} (tol {self.tolerance:g}){within}, {state}"
         )
 

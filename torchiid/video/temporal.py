@@ -312,5 +312,5 @@ def _stage0_seconds(times: dict[str, float]) -> float:
     return sum(
         v
         for k, v in times.items()
-        if not (k.startswith("shading ") or k.startswith("reflectance ") or k == "total")
+        if not (k.startswith(("shading ", "reflectance ")) or k in ("total", "coarse inputs"))
     )
