@@ -3,9 +3,9 @@
 The §3.4 schedule's alternations refine one answer: each starts from the previous shading
 (the shading PCG's warm start) and reflectance (the next matting base and the Split-Bregman
 start). With ``params.coarse_scale`` below 1 the alternations ``1 .. k − 1`` run on the image
-brought to that fraction of the working resolution's sides, and their last shading and
-shading, brought back up, starts the shading solve of alternation ``k`` at the working
-resolution, whose Stage 2 starts from its ``ρ`` as a first alternation's does. Every
+brought to that fraction of the working resolution's sides, and their shading, brought back
+up, starts the shading solve of alternation ``k`` at the working resolution, whose Stage 2
+starts from its ``ρ`` as a first alternation's does. Every
 alternation solves the paper's terms with the §3.4 weights; at the coarse size the terms
 counted per patch (``S_c``) and per segment (``C``) weigh about four times more against the
 per-pixel ones, whose pixels are a quarter as many at half size.
@@ -13,9 +13,10 @@ per-pixel ones, whose pixels are a quarter as many at half size.
 Stage 0 runs once, at the working resolution: the coarse alternations take its features
 resampled (:func:`coarse_features`), so the CNN and the proposals are not run twice.
 
-It applies to a cold decomposition only: a warm start (``init``), a temporal prior or a
-``schedule_start`` after 1 already says where the solves start, and a coarse size whose
-shorter side falls below the patch size runs every alternation at the working resolution.
+It applies to a cold decomposition with a shading stage only: a warm start (``init``), a
+temporal prior or a ``schedule_start`` after 1 already says where the solves start, without
+Stage 1 there is no shading solve to start, and a coarse size whose shorter side falls below
+the patch size runs every alternation at the working resolution.
 """
 
 from __future__ import annotations
@@ -187,21 +188,22 @@ def hand_over(coarse: Alternation, run: Alternation) -> None:
     """
     params, low, work = run.params, coarse.work, run.work
     size = work.size
-    if coarse.reflectance is not None and coarse.sigma is not None:
-        floor, out, dark = params.reflectance.shading_floor, params.output, params.shading.dark_eps
-        shading = final_shading(low.image, coarse.reflectance, coarse.sigma, params)
-        # outside the coarse mask the shading means nothing (I = R = 0): those pixels stay out
-        weight = None if low.mask is None else low.mask.to(shading.dtype)
-        guide = log_luminance(work.image, dark)
-        log_low = _inside_mean(shading.clamp_min(floor).log(), low.mask)
-        up = GuidedUpsampler(
-            log_low, log_luminance(low.image, dark), size, out.guide_radius, out.guide_eps,
-            weight,
-        )  # fmt: skip
-        log_s = up.full(lambda rows: guide[:, :, rows])
-        if work.mask is not None:
-            log_s = log_s * work.mask
-        run.work = replace(work, log_shading0=log_s.contiguous())
+    if coarse.reflectance is None or coarse.sigma is None:
+        raise ValueError("hand_over needs a coarse run of at least one alternation")
+    floor, out, dark = params.reflectance.shading_floor, params.output, params.shading.dark_eps
+    shading = final_shading(low.image, coarse.reflectance, coarse.sigma, params)
+    # outside the coarse mask the shading means nothing (I = R = 0): those pixels stay out
+    weight = None if low.mask is None else low.mask.to(shading.dtype)
+    guide = log_luminance(work.image, dark)
+    log_low = _inside_mean(shading.clamp_min(floor).log(), low.mask)
+    up = GuidedUpsampler(
+        log_low, log_luminance(low.image, dark), size, out.guide_radius, out.guide_eps,
+        weight,
+    )  # fmt: skip
+    log_s = up.full(lambda rows: guide[:, :, rows])
+    if work.mask is not None:
+        log_s = log_s * work.mask
+    run.work = replace(work, log_shading0=log_s.contiguous())
     run.solves[:0] = [replace(r, size=low.size) for r in coarse.solves]
     run.times = {**coarse.times, **run.times}
     low_mask, mask = low.mask, work.mask
