@@ -9,6 +9,7 @@ coffee photo with 5 alternations and writes the README's screenshot, ``docs/imag
 from __future__ import annotations
 
 import os
+import time
 import zipfile
 from pathlib import Path
 
@@ -73,13 +74,36 @@ def _click_image(page, elem_id: str, u: float, v: float) -> None:
     img.click(position={"x": x, "y": y})
 
 
-def _wait_for_new_after(page, before: str) -> None:
-    page.wait_for_function(
-        "(b) => { const i = document.querySelectorAll('#compare img')[1];"
-        " return i && i.getAttribute('src') !== b; }",
-        arg=before,
-        timeout=60_000,
-    )
+def _wait_for_new_after(page, before: str, server) -> None:
+    """Wait for the slider's "after" image to change; if it does not, say what the page and
+    the server showed."""
+    try:
+        page.wait_for_function(
+            "(b) => { const i = document.querySelectorAll('#compare img')[1];"
+            " return i && i.getAttribute('src') !== b; }",
+            arg=before,
+            timeout=60_000,
+        )
+    except playwright.Error:
+        toasts = page.locator(".toast-body").all_inner_texts()
+        status = page.locator("#selection-status").inner_text()
+        log = "".join(server.stderr)[-3000:]
+        pytest.fail(f"the preview did not change; page: {toasts} {status!r}; server:\n{log}")
+
+
+def _settled_after(page, quiet: float = 2.0, timeout: float = 60.0) -> str:
+    """The "after" image's source once it has not changed for ``quiet`` seconds: every
+    preview still queued has landed."""
+    deadline = time.monotonic() + timeout
+    last, since = _after(page), time.monotonic()
+    while time.monotonic() < deadline:
+        page.wait_for_timeout(250)
+        now = _after(page)
+        if now != last:
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since >= quiet:
+            return last
+    pytest.fail(f"the preview was still changing after {timeout:.0f} s")
 
 
 def test_upload_slider_click_and_downloads(page, browser_app, photos, tmp_path):
@@ -103,7 +127,7 @@ def test_upload_slider_click_and_downloads(page, browser_app, photos, tmp_path):
     # a slider: the preview changes
     before = _after(page)
     _set(page, "soften", 0.3)
-    _wait_for_new_after(page, before)
+    _wait_for_new_after(page, before, browser_app)
 
     # a click on the object under the pointer selects it; a hue edit recolours it
     _click_image(page, "photo", 0.72, 0.78)
@@ -116,9 +140,13 @@ def test_upload_slider_click_and_downloads(page, browser_app, photos, tmp_path):
     if screenshot:
         _set(page, "selection-size", 5)
         expect(status).to_contain_text("(object 6 of ", timeout=60_000)
+    # every preview so far leaves the object edits at their defaults, so ``before`` is the
+    # same picture (the same file) whether or not the one that follows the size change
+    # has landed yet; that one must not land after the hue's and hide it
     before = _after(page)
     _set(page, "hue", 150)
-    _wait_for_new_after(page, before)
+    _wait_for_new_after(page, before, browser_app)
+    assert _settled_after(page) != before
 
     # every alternation's layers
     page.get_by_text("Every alternation's layers").click()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import json
 import zipfile
 from pathlib import Path
@@ -350,3 +351,27 @@ def test_settings_from_the_controls_values():
     assert s == EditSettings(merge=False, hue=30.0, texture="/x/t.png")
     with pytest.raises(Exception, match="expected 11 edit values"):
         settings_from([1, 2])
+
+
+# Building a page outside a server leaves event loops that Gradio opens and never closes;
+# they are collected inside this test so that no later test reports them.
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+def test_the_previews_run_one_at_a_time_in_the_order_the_controls_moved(tmp_path):
+    # Two previews at once could finish out of order: one started before the last move (the
+    # one chained after a selection, say) would land last and show edits the controls no
+    # longer have. One shared group of one runs them first in, first out.
+    from torchiid.app.ui import build_app
+
+    folder = ServerFolder(tmp_path)
+    try:
+        demo = build_app(AppConfig(iterations=1), folder)
+        previews = [f for f in demo.fns.values() if f.name == "preview"]
+        del demo
+        assert len(previews) > 10  # every control, the compare choice, select, size, reset...
+        assert {f.concurrency_id for f in previews} == {"edit"}
+        assert {f.concurrency_limit for f in previews} == {1}
+        assert {f.trigger_mode for f in previews} == {"always_last"}
+    finally:
+        previews = []
+        gc.collect()
+        folder.remove()

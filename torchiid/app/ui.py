@@ -33,9 +33,12 @@ DELETE_CACHE = (1800, 7200)
 
 _PRIVATE = {"api_visibility": "private"}
 _HEAVY = {"concurrency_id": "decompose", "concurrency_limit": 1}
+#: every preview listener: one at a time, in the order the controls moved, so a preview
+#: started before the last move never lands after it and shows edits the controls no longer
+#: have (Gradio's queue is first in, first out within a concurrency group)
 _EDIT = {
     "concurrency_id": "edit",
-    "concurrency_limit": 2,
+    "concurrency_limit": 1,
     "trigger_mode": "always_last",
     "show_progress": "hidden",
     **_PRIVATE,
@@ -195,7 +198,7 @@ def build_app(config: AppConfig, folder: ServerFolder) -> gr.Blocks:
             event.failure(calls.failed, [session, photo_file], cleared, **_PRIVATE)
             event.success(
                 calls.details, [session], [gallery, selection, size, status], **_PRIVATE
-            ).success(calls.preview, preview_in, [compare_view], **_PRIVATE).success(
+            ).success(calls.preview, preview_in, [compare_view], **_EDIT).success(
                 calls.layers_zip, [session], [layers_file], **api, **_HEAVY
             )
         for name, control in controls.items():
