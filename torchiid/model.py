@@ -29,6 +29,7 @@ from torch import nn
 from torchiid._version import __version__
 from torchiid.core.compiling import eager_under_compile
 from torchiid.core.exceptions import ParameterError
+from torchiid.core.memory import release_free_memory
 from torchiid.features.semantic import SemanticFeatures, semantic_features
 from torchiid.params import PRESETS, Parameters
 from torchiid.pipeline.alternation import Alternation, warn_unconverged
@@ -163,6 +164,7 @@ def decompose(
     # Stage 0: the semantic features (§3.1), unless given
     if features is None:
         features = semantic_features(work.image, params)
+        release_free_memory()  # Stage 0's buffers, before the solves that set the peak
     times = dict(features.times)
     total = params.iterations - work.first + 1  # the alternations this call runs
     if progress is not None:
@@ -180,6 +182,7 @@ def decompose(
     size = coarse_size(work, params)
     if size is not None:
         hand_over(coarse_alternations(work, features, params, size, run.keep_layers, done), run)
+        release_free_memory()  # the half-size run's buffers, before the full-size one
         first = params.iterations
     for k in range(first, params.iterations + 1):
         shading, reflectance = params.alternation(k)  # the §3.4 schedule's weights

@@ -1,4 +1,5 @@
 import os
+import platform
 import subprocess
 import sys
 
@@ -61,3 +62,55 @@ def test_one_arena_serves_every_thread_started_after_it():
 def test_a_malloc_arena_max_from_the_environment_is_left_alone():
     made, arenas = _arenas("share", {"MALLOC_ARENA_MAX": "2"})
     assert made == "False" and arenas <= 2
+
+
+TRIM = """
+import ctypes, os, sys
+from torchiid.core.memory import release_free_memory
+libc = ctypes.CDLL(None)
+libc.malloc.restype = ctypes.c_void_p
+libc.free.argtypes = [ctypes.c_void_p]
+def rss():
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+# 64 MB in 64 KiB blocks (below the mmap threshold: on the heap), touched, then all freed but
+# the last, which keeps the heap's top in use: glibc holds the rest until it is trimmed
+blocks = [libc.malloc(65536) for _ in range(1000)]
+for b in blocks:
+    ctypes.memset(b, 1, 65536)
+for b in blocks[:-1]:
+    libc.free(b)
+held = rss()
+done = release_free_memory() if sys.argv[1] == "release" else None
+print(done, (held - rss()) / 1e6)
+"""
+
+
+def _trim(mode):
+    out = subprocess.run([sys.executable, "-c", TRIM, mode], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    done, freed = out.stdout.split()
+    return done, float(freed)
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc only")
+def test_free_memory_below_memory_in_use_goes_back_to_the_system():
+    done, freed = _trim("release")
+    assert done == "True" and freed > 40  # of the 64 MB freed
+    _, freed = _trim("keep")
+    assert freed < 5  # without it glibc holds them
+
+
+def test_decompose_releases_free_memory_after_stage0_and_the_half_size_run(monkeypatch):
+    import torchiid.model as model
+    from torchiid.params import Parameters
+    from torchiid.synthetic import mondrian
+
+    calls = []
+    monkeypatch.setattr(model, "release_free_memory", lambda: calls.append(1) or True)
+    image = mondrian(128, 128).image
+    model.decompose(image, Parameters().replace(iterations=2))
+    assert len(calls) == 2  # Stage 0; the half-size alternation
+    calls.clear()
+    model.decompose(image, Parameters().replace(iterations=2, coarse_scale=1.0))
+    assert len(calls) == 1

@@ -158,6 +158,10 @@ def test_the_last_alternation_starts_its_shading_from_the_coarse_one():
     assert _rms(start - true) < 0.7 * _rms(image - true)
     run.shading_step(3, P.alternation(3)[0])
     assert run.solves[-1].cap == P.shading.warm_cg_max_iter  # the warm start's cap
+    # the coarse run kept B's factor for its next alternation; the last one keeps nothing
+    assert not low.reflectance_cache.last and low.reflectance_cache.semantic is not None
+    run.reflectance_step(3, P.alternation(3)[1])
+    assert run.reflectance_cache.last and run.reflectance_cache.semantic is None
 
 
 def _rms(x):

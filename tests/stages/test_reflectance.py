@@ -1,5 +1,6 @@
 import itertools
 import math
+import weakref
 
 import numpy as np
 import pytest
@@ -84,6 +85,40 @@ def test_cache_reuses_the_proposal_factor_and_changes_nothing():
     built = [build_reflectance_terms(p, opts, cache=cache) for p in (problem, scaled)]
     ptrs = {b.terms["A+B"][1].weights.data_ptr() for b in built}
     assert len(ptrs) == 1 and ptrs == {cache.weights_buffer(rho, 12).data_ptr()}
+
+
+def test_the_last_solve_lets_the_proposal_factor_go_before_the_bregman_storage():
+    s, rho, gpca = _scene(h=32, w=40)
+    opts = W.replace(bregman_iter=2, bregman_cg_iter=3, window=5)
+    problem = ReflectanceProblem(rho, s.image, gpca=gpca)
+    scaled = problem.replace(rho=0.9 * rho)
+    cache = ReflectanceCache()
+    solve_reflectance(problem, opts, cache=cache)
+    kept = weakref.ref(cache.semantic[1])
+    alive_at_storage = []
+    take_storage = cache.state_buffer
+
+    def state_buffer(*args, **kwargs):
+        alive_at_storage.append(kept() is not None)
+        return take_storage(*args, **kwargs)
+
+    cache.state_buffer = state_buffer
+    cache.last = True
+    last = solve_reflectance(scaled, opts, cache=cache)
+    assert cache.hits == 1 and cache.semantic is None  # reused, then let go
+    assert alive_at_storage == [False] and kept() is None
+    # the same as a kept factor (a cache's storage: its 16-bit Bregman variable)
+    kept_cache = ReflectanceCache()
+    solve_reflectance(problem, opts, cache=kept_cache)
+    same = solve_reflectance(scaled, opts, cache=kept_cache)
+    assert torch.equal(last.reflectance, same.reflectance)
+    # a last solve on a new cache makes the factor and keeps nothing
+    fresh = ReflectanceCache(last=True)
+    got = solve_reflectance(problem, opts, cache=fresh)
+    assert fresh.semantic is None and fresh.hits == 0
+    assert torch.equal(
+        got.reflectance, solve_reflectance(problem, opts, cache=ReflectanceCache()).reflectance
+    )
 
 
 def test_cache_reuses_the_segment_layout_and_changes_nothing():

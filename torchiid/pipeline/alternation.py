@@ -100,6 +100,7 @@ class Alternation:
             problem = self.features.reflectance_problem(rho, img, mask=self.work.mask)
             if self.work.temporal is not None:
                 problem = problem.replace(temporal=self.work.temporal)
+            self.reflectance_cache.last = k == self.params.iterations
             rr = solve_reflectance(
                 problem, reflectance, z0=self._reflectance_start(), cache=self.reflectance_cache,
                 track_objective=False,

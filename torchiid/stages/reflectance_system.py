@@ -7,6 +7,7 @@ what does not change between the alternations on one image.
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from collections.abc import Callable, Mapping
@@ -71,6 +72,10 @@ class ReflectanceCache:
         state_step: the step of that variable's fixed-point values.
         theta: the Split-Bregman penalty that variable was written at (it changes with
             ``bregman_theta_floor``; the next warm solve starts there).
+        last: no later solve on this image will use the cache (the last alternation sets
+            it): ``B``'s factor is then neither kept nor held (one kept is let go) once the
+            merged weights are made, so its ``(B, K, H, W)`` tensor is freed before the
+            Bregman variable's storage is taken and the solve runs.
     """
 
     semantic: tuple[InputKey, torch.Tensor] | None = None
@@ -79,6 +84,7 @@ class ReflectanceCache:
     state_valid: bool = False
     state_step: float | None = None
     theta: float | None = None
+    last: bool = False
     _state: torch.Tensor | None = None
     _weights: torch.Tensor | None = None
 
@@ -189,26 +195,44 @@ def _semantic_factor(
 
     if cache is None:
         return factor()
-    return cache.reuse("semantic", input_key(gpca, t_m, mask, like.dtype, o.window), factor)
+    key = input_key(gpca, t_m, mask, like.dtype, o.window)
+    if cache.last:  # not kept: freed as soon as the caller lets it go
+        kept, cache.semantic = cache.semantic, None
+        if kept is not None and kept[0] == key:
+            cache.hits += 1
+            return kept[1]
+        return factor()
+    return cache.reuse("semantic", key, factor)
 
 
 def _stencil_terms(
     rho: torch.Tensor,
     rbar: torch.Tensor,
-    e_g: torch.Tensor | None,
+    semantic: Callable[[], torch.Tensor] | None,
     stencil: Stencil,
     o: ReflectanceParameters,
     weights: Mapping[str, float],
     mask: torch.Tensor | None,
     cache: ReflectanceCache | None,
     merge: bool,
-) -> dict[str, tuple[float, object]]:
-    """``A`` and ``B`` (Eqs. 8-9): one merged term ``"A+B"`` when both are on and ``merge``."""
-    use_a, use_b = weights["A"] > 0, e_g is not None
+) -> tuple[dict[str, tuple[float, object]], float]:
+    """``A`` and ``B`` (Eqs. 8-9): one merged term ``"A+B"`` when both are on and ``merge``.
+
+    ``semantic`` makes ``B``'s factor (``None``: ``B`` is off); it is made here, and held
+    only as long as it is needed, so that it can be freed before the Bregman variable's
+    storage is taken. Returns the terms and the seconds spent making the factor.
+    """
+    use_a, use_b = weights["A"] > 0, semantic is not None
+    seconds = 0.0
     if use_a and use_b and merge:
+        assert semantic is not None
         gl, gm = weights["A"], weights["B"]
         out = None if cache is None else cache.weights_buffer(rho, stencil.num_offsets)
+        t0 = time.perf_counter()
+        e_g = semantic()
+        seconds = time.perf_counter() - t0
         merged = merged_stencil_affinity(rbar, e_g, stencil, o.t, gl, gm, mask, out=out)
+        del e_g  # the cache's copy too in the last alternation (see ReflectanceCache.last)
         # 16-bit fixed point unless λ = γ / θ is too small for it (then float32)
         fixed = kernels.fixed_point_fits(float(gl + gm) / (o.theta * o.value_scale))
         state = None
@@ -228,18 +252,21 @@ def _stencil_terms(
         )
         if cache is not None:
             cache.state_valid = False  # valid again once the solve has written it
-        return {"A+B": (float(gl + gm), term)}
+        return {"A+B": (float(gl + gm), term)}, seconds
     terms: dict[str, tuple[float, object]] = {}
     if use_a or use_b:
         v_l = stencil_affinity(rbar, stencil, o.t, mask)
         if use_a:
             terms["A"] = (float(weights["A"]), StencilL1Term(stencil, v_l, zero_invalid=False))
-        if use_b:
+        if semantic is not None:
+            t0 = time.perf_counter()
+            e_g = semantic()
+            seconds = time.perf_counter() - t0
             terms["B"] = (
                 float(weights["B"]),
                 StencilL1Term(stencil, e_g * v_l, zero_invalid=False),
             )
-    return terms
+    return terms, seconds
 
 
 def _global_term(
@@ -279,11 +306,10 @@ def assemble_reflectance_terms(
     lum = w_l if o.luminance_weight is None else o.luminance_weight
     rbar = lab_features(rho, luminance_weight=lum, lab_scale=lab_scale)
     t1 = time.perf_counter()
-    e_g = None
+    semantic = None
     if weights["B"] > 0 and gpca is not None:
-        e_g = _semantic_factor(gpca, rho, o, stencil, mask, cache)
-    t2 = time.perf_counter()
-    terms = _stencil_terms(rho, rbar, e_g, stencil, o, weights, mask, cache, merge)
+        semantic = functools.partial(_semantic_factor, gpca, rho, o, stencil, mask, cache)
+    terms, t_semantic = _stencil_terms(rho, rbar, semantic, stencil, o, weights, mask, cache, merge)
     t3 = time.perf_counter()
     nrep = torch.zeros(b, dtype=torch.long, device=rho.device)
     if weights["C"] > 0 and problem.segments is not None:
@@ -293,7 +319,7 @@ def assemble_reflectance_terms(
         if term is not None:
             terms["T"] = term
     t4 = time.perf_counter()
-    return ReflectanceTerms(terms, nrep, (t1 - t0, t3 - t2, t2 - t1, t4 - t3))
+    return ReflectanceTerms(terms, nrep, (t1 - t0, t3 - t1 - t_semantic, t_semantic, t4 - t3))
 
 
 def build_reflectance_terms(
