@@ -205,6 +205,13 @@ def _semantic_factor(
     return cache.reuse("semantic", key, factor)
 
 
+def _timed(make: Callable[[], torch.Tensor]) -> tuple[torch.Tensor, float]:
+    """``make()`` and the seconds it took."""
+    t0 = time.perf_counter()
+    value = make()
+    return value, time.perf_counter() - t0
+
+
 def _stencil_terms(
     rho: torch.Tensor,
     rbar: torch.Tensor,
@@ -222,15 +229,12 @@ def _stencil_terms(
     only as long as it is needed, so that it can be freed before the Bregman variable's
     storage is taken. Returns the terms and the seconds spent making the factor.
     """
-    use_a, use_b = weights["A"] > 0, semantic is not None
+    use_a = weights["A"] > 0
     seconds = 0.0
-    if use_a and use_b and merge:
-        assert semantic is not None
+    if use_a and semantic is not None and merge:
         gl, gm = weights["A"], weights["B"]
         out = None if cache is None else cache.weights_buffer(rho, stencil.num_offsets)
-        t0 = time.perf_counter()
-        e_g = semantic()
-        seconds = time.perf_counter() - t0
+        e_g, seconds = _timed(semantic)
         merged = merged_stencil_affinity(rbar, e_g, stencil, o.t, gl, gm, mask, out=out)
         del e_g  # the cache's copy too in the last alternation (see ReflectanceCache.last)
         # 16-bit fixed point unless λ = γ / θ is too small for it (then float32)
@@ -254,14 +258,12 @@ def _stencil_terms(
             cache.state_valid = False  # valid again once the solve has written it
         return {"A+B": (float(gl + gm), term)}, seconds
     terms: dict[str, tuple[float, object]] = {}
-    if use_a or use_b:
+    if use_a or semantic is not None:
         v_l = stencil_affinity(rbar, stencil, o.t, mask)
         if use_a:
             terms["A"] = (float(weights["A"]), StencilL1Term(stencil, v_l, zero_invalid=False))
         if semantic is not None:
-            t0 = time.perf_counter()
-            e_g = semantic()
-            seconds = time.perf_counter() - t0
+            e_g, seconds = _timed(semantic)
             terms["B"] = (
                 float(weights["B"]),
                 StencilL1Term(stencil, e_g * v_l, zero_invalid=False),
