@@ -467,3 +467,16 @@ def test_loading_the_method_does_not_load_torch_compilers_machinery():
     code = "import sys, torchiid, torchiid.model; print('torch._dynamo' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_kornia_is_loaded_by_the_first_colour_conversion_not_by_the_method():
+    """kornia's import holds 20 MB: not resident yet while Stage 0's CNN pass sets a peak."""
+    code = (
+        "import sys, torch, torchiid.model\n"
+        "print('kornia' in sys.modules)\n"
+        "from torchiid.priors.affinity import lab_features\n"
+        "lab_features(torch.rand(1, 3, 4, 4))\n"
+        "print('kornia' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "True"]

@@ -187,6 +187,11 @@ def decompose(
     for k in range(first, params.iterations + 1):
         shading, reflectance = params.alternation(k)  # the §3.4 schedule's weights
         run.shading_step(k, shading)
+        if k == params.iterations:
+            # no shading solve follows: its terms go, and their memory back to the system,
+            # before the last reflectance solve takes the run's largest tensors
+            run.release_shading_terms()
+            release_free_memory()
         run.reflectance_step(k, reflectance)
         done(k, run)
     times.update(run.times)

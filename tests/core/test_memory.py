@@ -101,16 +101,31 @@ def test_free_memory_below_memory_in_use_goes_back_to_the_system():
     assert freed < 5  # without it glibc holds them
 
 
-def test_decompose_releases_free_memory_after_stage0_and_the_half_size_run(monkeypatch):
+def test_decompose_releases_free_memory_after_stage0_the_half_size_run_and_the_shading(
+    monkeypatch,
+):
     import torchiid.model as model
     from torchiid.params import Parameters
+    from torchiid.pipeline.alternation import Alternation
     from torchiid.synthetic import mondrian
 
     calls = []
     monkeypatch.setattr(model, "release_free_memory", lambda: calls.append(1) or True)
+    kept_terms = []  # (alternation, shading terms kept) as each reflectance step starts
+    step = Alternation.reflectance_step
+
+    def reflectance_step(self, k, reflectance):
+        kept_terms.append((k, len(self.shading_cache.terms)))
+        return step(self, k, reflectance)
+
+    monkeypatch.setattr(Alternation, "reflectance_step", reflectance_step)
     image = mondrian(128, 128).image
     model.decompose(image, Parameters().replace(iterations=2))
-    assert len(calls) == 2  # Stage 0; the half-size alternation
+    # Stage 0; the half-size alternation; the last shading solve's terms
+    assert len(calls) == 3
+    assert kept_terms[0][1] > 0 and kept_terms[-1] == (2, 0)
     calls.clear()
+    kept_terms.clear()
     model.decompose(image, Parameters().replace(iterations=2, coarse_scale=1.0))
-    assert len(calls) == 1
+    assert len(calls) == 2
+    assert kept_terms[0][0] == 1 and kept_terms[0][1] > 0 and kept_terms[1] == (2, 0)

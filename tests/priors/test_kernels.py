@@ -181,6 +181,33 @@ def test_inputs_the_kernels_do_not_handle_keep_the_torch_results(torch_ops):
         merged_stencil_affinity(colour, sem, st, 0.05, 2.0, 20.0, out=torch.empty(1, 3, 16, 16))
 
 
+@pytest.mark.parametrize("with_mask", [False, True])
+def test_merged_weights_written_over_their_factor_are_the_same_on_both_paths(torch_ops, with_mask):
+    from torchiid.priors.reflectance_terms import merged_stencil_affinity
+
+    g = torch.Generator().manual_seed(9)
+    st = Stencil.square(14, 19, 11)  # 60 offsets: groups of 8, the last one short
+    colour = torch.rand(2, 3, 14, 19, generator=g) * 0.1
+    sem = torch.rand(2, st.num_offsets, 14, 19, generator=g)
+    mask = (torch.rand(2, 1, 14, 19, generator=g) > 0.2) if with_mask else None
+    want = merged_stencil_affinity(colour, sem, st, 0.05, 2.0, 20.0, mask)
+    for run in (lambda f: f(), torch_ops):  # the kernels, then the torch ops
+        factor = sem.clone()
+        got = run(
+            lambda f=factor: merged_stencil_affinity(colour, f, st, 0.05, 2.0, 20.0, mask, out=f)
+        )
+        assert got.data_ptr() == factor.data_ptr()
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+    # the kernels' values are those of their one-pass path, bit for bit
+    factor = sem.clone()
+    assert torch.equal(
+        merged_stencil_affinity(colour, factor, st, 0.05, 2.0, 20.0, mask, out=factor), want
+    )
+    with pytest.raises(ShapeError, match="only when that is contiguous"):
+        view = sem.permute(0, 1, 3, 2).contiguous().permute(0, 1, 3, 2)
+        merged_stencil_affinity(colour, view, st, 0.05, 2.0, 20.0, out=view)
+
+
 def test_affinities_below_the_floor_are_exactly_zero_on_both_paths(torch_ops):
     """Weights under e^MIN_EXPONENT are 0 (their squares would be subnormal), the rest exp."""
     from torchiid.priors.reflectance_terms import (

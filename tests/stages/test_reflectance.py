@@ -87,29 +87,32 @@ def test_cache_reuses_the_proposal_factor_and_changes_nothing():
     assert len(ptrs) == 1 and ptrs == {cache.weights_buffer(rho, 12).data_ptr()}
 
 
-def test_the_last_solve_lets_the_proposal_factor_go_before_the_bregman_storage():
+def test_the_last_solve_writes_its_weights_over_the_proposal_factor():
     s, rho, gpca = _scene(h=32, w=40)
     opts = W.replace(bregman_iter=2, bregman_cg_iter=3, window=5)
     problem = ReflectanceProblem(rho, s.image, gpca=gpca)
     scaled = problem.replace(rho=0.9 * rho)
     cache = ReflectanceCache()
     solve_reflectance(problem, opts, cache=cache)
-    kept = weakref.ref(cache.semantic[1])
-    alive_at_storage = []
-    take_storage = cache.state_buffer
-
-    def state_buffer(*args, **kwargs):
-        alive_at_storage.append(kept() is not None)
-        return take_storage(*args, **kwargs)
-
-    cache.state_buffer = state_buffer
-    cache.last = True
-    last = solve_reflectance(scaled, opts, cache=cache)
-    assert cache.hits == 1 and cache.semantic is None  # reused, then let go
-    assert alive_at_storage == [False] and kept() is None
-    # the same as a kept factor (a cache's storage: its 16-bit Bregman variable)
+    factor = cache.semantic[1]
+    earlier_weights = weakref.ref(cache.weights_buffer(rho, 12))
     kept_cache = ReflectanceCache()
     solve_reflectance(problem, opts, cache=kept_cache)
+    want = build_reflectance_terms(scaled, opts, cache=kept_cache).terms["A+B"][1].weights
+    cache.last = True
+    built = build_reflectance_terms(scaled, opts, cache=cache)
+    weights = built.terms["A+B"][1].weights
+    # one (B, K, H, W) tensor: the factor's storage now holds the weights, the same values
+    assert weights.data_ptr() == factor.data_ptr() and torch.equal(weights, want)
+    assert cache.hits == 1 and cache.semantic is None  # reused, then let go
+    del built, weights, factor
+    assert earlier_weights() is None  # the weights' storage of the earlier solve is let go
+    # the solve is the same as with a kept factor (a cache's storage: its 16-bit Bregman
+    # variable)
+    last_cache = ReflectanceCache()
+    solve_reflectance(problem, opts, cache=last_cache)
+    last_cache.last = True
+    last = solve_reflectance(scaled, opts, cache=last_cache)
     same = solve_reflectance(scaled, opts, cache=kept_cache)
     assert torch.equal(last.reflectance, same.reflectance)
     # a last solve on a new cache makes the factor and keeps nothing

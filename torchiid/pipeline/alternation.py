@@ -88,6 +88,10 @@ class Alternation:
             self.sigma = gray_shading(img, self.rho, self.params.reflectance.shading_floor)
         self.times[f"shading {k}"] = time.perf_counter() - t0
 
+    def release_shading_terms(self) -> None:
+        """Let go of the kept shading terms and preconditioner (no later shading solve)."""
+        self.shading_cache = ShadingSystemCache()
+
     def reflectance_step(self, k: int, reflectance: ReflectanceParameters) -> None:
         """Stage 2 of alternation ``k`` (Eq. 12): ``R`` from ``ρ``, by Split-Bregman.
 

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import math
 
-import kornia
 import torch
 
 from torchiid.core.colour import linear_to_srgb
@@ -83,6 +82,10 @@ def lab_features(
     k = max(1, min(peak.shape[1], round(white_quantile * peak.shape[1])))
     white = peak.kthvalue(k, dim=1).values.clamp_min(1.0).view(b, 1, 1, 1)
     srgb = linear_to_srgb(rgb / white)  # clamped to [0, 1] first
+    # imported here, not with the module: its 20 MB are then not resident yet during Stage 0's
+    # CNN pass, one of a decomposition's peaks of memory
+    import kornia
+
     lab = kornia.color.rgb_to_lab(srgb)
     scale = torch.tensor(
         [luminance_weight / lab_scale[0], 1.0 / lab_scale[1], 1.0 / lab_scale[2]],
@@ -161,7 +164,9 @@ def merged_stencil_affinity(
     computes once, so callers pass it precomputed (``stencil_affinity(g̊, stencil, t_g, mask)``)
     and reuse it across the alternations; one pass over the offsets then gives ``v̂`` without
     a second ``(B, K, H, W)`` tensor. ``out`` (optional, ``(B, K, H, W)``, the dtype and
-    device of ``colour``) receives the result instead of a new tensor.
+    device of ``colour``) receives the result instead of a new tensor; it may be
+    ``semantic_affinity`` itself (contiguous), whose factor the weights then replace, so that
+    a caller that does not keep the factor needs no second tensor of that size.
 
     Shape:
         colour ``(B, 3, H, W)``, semantic_affinity ``(B, K, H, W)``, mask ``(B, 1, H, W)`` ->
@@ -184,6 +189,12 @@ def merged_stencil_affinity(
             f"out must be a {colour.dtype} tensor of shape {shape} (batch, offsets, height, "
             f"width), got {out.dtype} of shape {tuple(out.shape)}"
         )
+    if (
+        out is not None
+        and out.data_ptr() == semantic_affinity.data_ptr()
+        and not semantic_affinity.is_contiguous()
+    ):
+        raise ShapeError("out can be semantic_affinity only when that is contiguous")
     cpu_mask = mask is None or mask.device.type == "cpu"
     if kernels.usable(colour, semantic_affinity, offsets=stencil.offsets) and cpu_mask:
         return kernels.stencil_affinity(
@@ -197,7 +208,8 @@ def merged_stencil_affinity(
             out=out,
             min_exponent=MIN_EXPONENT,
         )
-    out = colour.new_zeros(shape) if out is None else out.zero_()
+    fresh = out is None
+    out = colour.new_zeros(shape) if out is None else out
     for k, (dy, dx) in enumerate(stencil.offsets):
         yi, xi, yj, xj = shift_slices(dy, dx, h, w)
         dc = (colour[:, :, yi, xi] - colour[:, :, yj, xj]).square_().sum(dim=1)
@@ -208,6 +220,8 @@ def merged_stencil_affinity(
         )
         if mask is not None:
             v.mul_(mask[:, 0, yi, xi] & mask[:, 0, yj, xj])
+        if not fresh:  # zeroed only now: ``out`` may be ``semantic_affinity``, read above
+            out[:, k].zero_()
         out[:, k, yi, xi] = v
     return out
 

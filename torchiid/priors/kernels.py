@@ -194,12 +194,16 @@ def stencil_affinity(
     kernel writes the exponents (one pass over the offsets, no zero fill first), torch's
     vectorised ``exp`` exponentiates them in place and a second kernel applies the factor:
     about 3× faster than one ``exp`` call per pair in the kernel. Into ``out`` when given
-    (``(B, K, H, W)``, the features' dtype; a non-contiguous one receives a copy).
+    (``(B, K, H, W)``, the features' dtype; a non-contiguous one receives a copy). ``out``
+    may be ``semantic`` itself (contiguous, not broadcast): the weights then replace the
+    factor, a few offsets at a time, with the same values.
 
     Shape:
         features ``(B, D, H, W)``, semantic ``(B, K, H, W)``, mask ``(B, 1, H, W)`` bool ->
         ``(B, K, H, W)``.
     """
+    if semantic is not None and out is not None and out.data_ptr() == semantic.data_ptr():
+        return _affinity_over_factor(features, offsets, scale, out, a_l, a_m, mask, min_exponent)
     kernel = kernel_module()
     dys, dxs = offset_arrays(tuple(offsets))
     b, d, h, w = features.shape
@@ -232,3 +236,57 @@ def stencil_affinity(
     if given is not None and given is not out:
         return given.copy_(out)
     return out
+
+
+#: offsets per group of :func:`_affinity_over_factor` (a group's exponents are its scratch)
+FACTOR_GROUP_OFFSETS = 8
+
+
+def _affinity_over_factor(
+    features: torch.Tensor,
+    offsets: list[tuple[int, int]],
+    scale: float,
+    semantic: torch.Tensor,
+    a_l: float,
+    a_m: float,
+    mask: torch.Tensor | None,
+    min_exponent: float,
+) -> torch.Tensor:
+    """:func:`stencil_affinity` written over its factor ``semantic``, a few offsets at a time.
+
+    Each group's exponents go to a scratch tensor of :data:`FACTOR_GROUP_OFFSETS` offsets,
+    are exponentiated and scaled by the group's factors, and then replace them: the values
+    are those of the one-pass path (every step is per element), without a second
+    ``(B, K, H, W)`` tensor. ``semantic`` must be contiguous and of the output's shape.
+    """
+    kernel = kernel_module()
+    b, d, h, w = features.shape
+    nk = len(offsets)
+    dt = features.dtype
+    if semantic.shape != (b, nk, h, w) or semantic.dtype != dt or not semantic.is_contiguous():
+        raise ValueError(
+            f"weights written over their factor need a contiguous {dt} factor of shape "
+            f"{(b, nk, h, w)}, got {semantic.dtype} of shape {tuple(semantic.shape)}"
+        )
+    group = min(FACTOR_GROUP_OFFSETS, nk)
+    scratch = torch.empty(1, group, h, w, dtype=dt)
+    np_dt = scratch.numpy().dtype.type
+    feats = features.contiguous()
+    m = None if mask is None else mask.to(torch.bool).expand(b, 1, h, w).contiguous()
+    none = torch.empty(0, 0, 0, 0, dtype=torch.bool).numpy()
+    for i in range(b):
+        f = feats[i : i + 1].numpy()
+        mi = none if m is None else m[i : i + 1].numpy()
+        for k0 in range(0, nk, group):
+            n = min(group, nk - k0)
+            part = scratch[:, :n]
+            dys, dxs = offset_arrays(tuple(offsets[k0 : k0 + n]))
+            args = (f, mi, dys, dxs, np_dt(scale), np_dt(min_exponent), part.numpy())
+            run_bands(kernel.affinity_exponent, args, bands(h, h * w * n * (d + 4)))
+            part.exp_()
+            factor = semantic[i, k0 : k0 + n]
+            rows = n * h
+            scaled = (part.view(rows, w).numpy(), factor.view(rows, w).numpy(), np_dt(a_l))
+            run_bands(kernel.scale_by_factor, (*scaled, np_dt(a_m)), bands(rows, rows * w * 2))
+            factor.copy_(part[0])
+    return semantic

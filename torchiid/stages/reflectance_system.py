@@ -73,9 +73,9 @@ class ReflectanceCache:
         theta: the Split-Bregman penalty that variable was written at (it changes with
             ``bregman_theta_floor``; the next warm solve starts there).
         last: no later solve on this image will use the cache (the last alternation sets
-            it): ``B``'s factor is then neither kept nor held (one kept is let go) once the
-            merged weights are made, so its ``(B, K, H, W)`` tensor is freed before the
-            Bregman variable's storage is taken and the solve runs.
+            it): ``B``'s factor is then not kept (one kept is let go), the merged weights are
+            written over it and the weights' storage of earlier alternations is let go, so
+            the solve holds one ``(B, K, H, W)`` tensor of weights, not two.
     """
 
     semantic: tuple[InputKey, torch.Tensor] | None = None
@@ -119,6 +119,10 @@ class ReflectanceCache:
             self._state = st = like.new_empty(shape, dtype=dtype)
             self.state_valid = False
         return st
+
+    def release_weights(self) -> None:
+        """Let go of the merged weights' storage (a solve that will not reuse it)."""
+        self._weights = None
 
     def weights_buffer(self, like: torch.Tensor, num_offsets: int) -> torch.Tensor:
         """Storage ``(B, K, H, W)`` for the merged ``A``/``B`` weights, reused across calls.
@@ -225,18 +229,25 @@ def _stencil_terms(
 ) -> tuple[dict[str, tuple[float, object]], float]:
     """``A`` and ``B`` (Eqs. 8-9): one merged term ``"A+B"`` when both are on and ``merge``.
 
-    ``semantic`` makes ``B``'s factor (``None``: ``B`` is off); it is made here, and held
-    only as long as it is needed, so that it can be freed before the Bregman variable's
-    storage is taken. Returns the terms and the seconds spent making the factor.
+    ``semantic`` makes ``B``'s factor (``None``: ``B`` is off). Where nothing keeps the
+    factor (no cache, or the last alternation) the merged weights are written over it, so the
+    solve holds one ``(B, K, H, W)`` tensor of weights; otherwise they go to the cache's
+    storage. Returns the terms and the seconds spent making the factor.
     """
     use_a = weights["A"] > 0
     seconds = 0.0
     if use_a and semantic is not None and merge:
         gl, gm = weights["A"], weights["B"]
-        out = None if cache is None else cache.weights_buffer(rho, stencil.num_offsets)
         e_g, seconds = _timed(semantic)
+        if cache is None or cache.last:
+            # nothing else holds the factor (see ReflectanceCache.last): the weights replace it
+            if cache is not None:
+                cache.release_weights()
+            out = e_g
+        else:
+            out = cache.weights_buffer(rho, stencil.num_offsets)
         merged = merged_stencil_affinity(rbar, e_g, stencil, o.t, gl, gm, mask, out=out)
-        del e_g  # the cache's copy too in the last alternation (see ReflectanceCache.last)
+        del e_g, out
         # 16-bit fixed point unless λ = γ / θ is too small for it (then float32)
         fixed = kernels.fixed_point_fits(float(gl + gm) / (o.theta * o.value_scale))
         state = None

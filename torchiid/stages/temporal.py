@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 
-import kornia
 import torch
 
 from torchiid.params import ReflectanceParameters
@@ -155,6 +154,8 @@ def temporal_term(
         side = 2 * int(math.ceil(3 * prior.sigma)) + 1
         side = min(side, 2 * (min(rho.shape[-2:]) // 2) - 1)
         sig = (float(prior.sigma), float(prior.sigma))
+        import kornia  # on first use, as in torchiid.priors.affinity.lab_features
+
         num = kornia.filters.gaussian_blur2d(log_ratio, (side, side), sig, border_type="reflect")
         den = kornia.filters.gaussian_blur2d(w, (side, side), sig, border_type="reflect")
         smooth = torch.where(den > 1e-3, num / den.clamp_min(1e-6), torch.zeros_like(num))
