@@ -32,16 +32,3 @@ def torch_ops(monkeypatch):
             return fn()
 
     return run
-
-
-@pytest.fixture(scope="session", autouse=True)
-def torch_exp_on_every_thread():
-    """torch's ``exp`` run once on all its threads before any kernel test, as the pipeline does.
-
-    In a fresh process whose first parallel ``exp`` comes right after a compiled kernel wrote
-    its input, the part on torch's second thread was seen to be off by up to 1.5e-4 (relative)
-    in a few processes of a hundred; every later call is exact. The pipeline's own torch ops
-    run before its first kernel, so its results are the same in every process; the tests that
-    compare the kernels with the torch ops bit for bit start from that state too.
-    """
-    torch.rand(1 << 17).exp_()

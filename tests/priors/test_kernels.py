@@ -198,14 +198,28 @@ def test_merged_weights_written_over_their_factor_are_the_same_on_both_paths(tor
         )
         assert got.data_ptr() == factor.data_ptr()
         torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
-    # the kernels' values are those of their one-pass path, bit for bit
+    # each path's values are those it writes to a new tensor, bit for bit
     factor = sem.clone()
     assert torch.equal(
         merged_stencil_affinity(colour, factor, st, 0.05, 2.0, 20.0, mask, out=factor), want
     )
-    with pytest.raises(ShapeError, match="only when that is contiguous"):
+    fresh = torch_ops(lambda: merged_stencil_affinity(colour, sem, st, 0.05, 2.0, 20.0, mask))
+    factor = sem.clone()
+    over = torch_ops(
+        lambda: merged_stencil_affinity(colour, factor, st, 0.05, 2.0, 20.0, mask, out=factor)
+    )
+    assert torch.equal(over, fresh)
+    # memory shared in any other way than as the same contiguous tensor is refused
+    with pytest.raises(ShapeError, match="it can only be that very tensor, contiguous"):
         view = sem.permute(0, 1, 3, 2).contiguous().permute(0, 1, 3, 2)
         merged_stencil_affinity(colour, view, st, 0.05, 2.0, 20.0, out=view)
+    square = Stencil.square(12, 12, 5)
+    s12 = torch.rand(1, square.num_offsets, 12, 12, generator=g)
+    with pytest.raises(ValueError, match="different views"):
+        kernels.stencil_affinity(
+            colour[:1, :, :12, :12], square.offsets, -200.0, s12.transpose(-1, -2), 1.0, 1.0,
+            out=s12,
+        )  # fmt: skip
 
 
 def test_affinities_below_the_floor_are_exactly_zero_on_both_paths(torch_ops):

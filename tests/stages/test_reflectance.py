@@ -124,6 +124,26 @@ def test_the_last_solve_writes_its_weights_over_the_proposal_factor():
     )
 
 
+def test_without_a_cache_the_weights_are_written_over_their_own_factor(monkeypatch):
+    import torchiid.stages.reflectance_system as rs
+
+    s, rho, gpca = _scene(h=32, w=40)
+    opts = W.replace(bregman_iter=2, bregman_cg_iter=3, window=5)
+    problem = ReflectanceProblem(rho, s.image, gpca=gpca)
+    want = build_reflectance_terms(problem, opts, cache=ReflectanceCache())
+    over = []
+    merged = rs.merged_stencil_affinity
+
+    def recording(colour, factor, *args, out=None, **kwargs):
+        over.append(out is factor)
+        return merged(colour, factor, *args, out=out, **kwargs)
+
+    monkeypatch.setattr(rs, "merged_stencil_affinity", recording)
+    got = build_reflectance_terms(problem, opts)
+    assert over == [True]
+    assert torch.equal(got.terms["A+B"][1].weights, want.terms["A+B"][1].weights)
+
+
 def test_cache_reuses_the_segment_layout_and_changes_nothing():
     s, rho, gpca = _scene(h=32, w=40)
     opts = W.replace(bregman_iter=2, bregman_cg_iter=3, window=5)

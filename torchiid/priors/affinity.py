@@ -189,12 +189,13 @@ def merged_stencil_affinity(
             f"out must be a {colour.dtype} tensor of shape {shape} (batch, offsets, height, "
             f"width), got {out.dtype} of shape {tuple(out.shape)}"
         )
-    if (
-        out is not None
-        and out.data_ptr() == semantic_affinity.data_ptr()
-        and not semantic_affinity.is_contiguous()
-    ):
-        raise ShapeError("out can be semantic_affinity only when that is contiguous")
+    if out is not None and out.data_ptr() == semantic_affinity.data_ptr():
+        same = out.shape == semantic_affinity.shape and out.stride() == semantic_affinity.stride()
+        if not (same and out.is_contiguous()):
+            raise ShapeError(
+                "out shares its memory with semantic_affinity: it can only be that very "
+                "tensor, contiguous"
+            )
     cpu_mask = mask is None or mask.device.type == "cpu"
     if kernels.usable(colour, semantic_affinity, offsets=stencil.offsets) and cpu_mask:
         return kernels.stencil_affinity(

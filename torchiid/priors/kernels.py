@@ -195,14 +195,16 @@ def stencil_affinity(
     vectorised ``exp`` exponentiates them in place and a second kernel applies the factor:
     about 3× faster than one ``exp`` call per pair in the kernel. Into ``out`` when given
     (``(B, K, H, W)``, the features' dtype; a non-contiguous one receives a copy). ``out``
-    may be ``semantic`` itself (contiguous, not broadcast): the weights then replace the
-    factor, a few offsets at a time, with the same values.
+    may be ``semantic`` itself (the same contiguous tensor, not broadcast): the weights then
+    replace the factor, a few offsets at a time, with the values a new tensor would get.
 
     Shape:
         features ``(B, D, H, W)``, semantic ``(B, K, H, W)``, mask ``(B, 1, H, W)`` bool ->
         ``(B, K, H, W)``.
     """
     if semantic is not None and out is not None and out.data_ptr() == semantic.data_ptr():
+        if out.shape != semantic.shape or out.stride() != semantic.stride():
+            raise ValueError("out and semantic share their memory but are different views of it")
         return _affinity_over_factor(features, offsets, scale, out, a_l, a_m, mask, min_exponent)
     kernel = kernel_module()
     dys, dxs = offset_arrays(tuple(offsets))
@@ -238,7 +240,7 @@ def stencil_affinity(
     return out
 
 
-#: offsets per group of :func:`_affinity_over_factor` (a group's exponents are its scratch)
+#: offsets per group of :func:`_affinity_over_factor`, whose scratch tensor holds one group
 FACTOR_GROUP_OFFSETS = 8
 
 
@@ -264,9 +266,11 @@ def _affinity_over_factor(
     nk = len(offsets)
     dt = features.dtype
     if semantic.shape != (b, nk, h, w) or semantic.dtype != dt or not semantic.is_contiguous():
+        layout = "contiguous" if semantic.is_contiguous() else "non-contiguous"
         raise ValueError(
             f"weights written over their factor need a contiguous {dt} factor of shape "
-            f"{(b, nk, h, w)}, got {semantic.dtype} of shape {tuple(semantic.shape)}"
+            f"{(b, nk, h, w)}, got a {layout} {semantic.dtype} one of shape "
+            f"{tuple(semantic.shape)}"
         )
     group = min(FACTOR_GROUP_OFFSETS, nk)
     scratch = torch.empty(1, group, h, w, dtype=dt)
