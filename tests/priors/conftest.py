@@ -38,7 +38,7 @@ def torch_ops(monkeypatch):
 def torch_exp_on_two_threads():
     """One parallel ``exp`` before the kernel tests, on two threads.
 
-    In a few processes of a hundred, torch's first parallel ``exp`` (torch 2.13.0 on the CPU,
+    In up to about one process in ten, torch's first parallel ``exp`` (torch 2.13.0 on the CPU,
     2 threads) comes out up to 1.5e-4 (relative) off on its second thread; every later call
     is exact. These tests compare the kernels with the torch ops, and two ways of computing
     the same weights bit for bit, so their process makes that first call here, on two threads

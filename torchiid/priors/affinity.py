@@ -193,8 +193,9 @@ def merged_stencil_affinity(
         same = out.shape == semantic_affinity.shape and out.stride() == semantic_affinity.stride()
         if not (same and out.is_contiguous()):
             raise ShapeError(
-                "out shares its memory with semantic_affinity: it can only be that very "
-                "tensor, contiguous"
+                "out shares memory with semantic_affinity but is another view of it: pass "
+                "semantic_affinity itself (contiguous) to write the weights over the factor, "
+                "or a tensor of its own"
             )
     cpu_mask = mask is None or mask.device.type == "cpu"
     if kernels.usable(colour, semantic_affinity, offsets=stencil.offsets) and cpu_mask:
