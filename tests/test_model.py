@@ -469,14 +469,29 @@ def test_loading_the_method_does_not_load_torch_compilers_machinery():
     assert out.stdout.strip() == "False"
 
 
-def test_kornia_is_loaded_by_the_first_colour_conversion_not_by_the_method():
-    """kornia's import holds 20 MB: not resident yet while Stage 0's CNN pass sets a peak."""
+@pytest.mark.parametrize(
+    ("module", "first_use"),
+    [
+        # the colour features' conversion (kornia, 20 MB)
+        (
+            "kornia",
+            "from torchiid.priors.affinity import lab_features as f; f(torch.rand(1, 3, 4, 4))",
+        ),
+        # selective search's colour spaces (OpenCV, 10 MB)
+        (
+            "cv2",
+            "from torchiid.features.proposal_features import to_colour_space as f; "
+            "f(numpy.full((4, 4, 3), 0.5), 'lab')",
+        ),
+    ],
+)
+def test_a_heavy_library_is_loaded_at_its_first_use_not_by_the_method(module, first_use):
+    """Not resident yet while Stage 0's CNN pass sets one of a decomposition's peaks."""
     code = (
-        "import sys, torch, torchiid.model\n"
-        "print('kornia' in sys.modules)\n"
-        "from torchiid.priors.affinity import lab_features\n"
-        "lab_features(torch.rand(1, 3, 4, 4))\n"
-        "print('kornia' in sys.modules)\n"
+        "import sys, numpy, torch, torchiid, torchiid.model, torchiid.features\n"
+        f"print({module!r} in sys.modules)\n"
+        f"{first_use}\n"
+        f"print({module!r} in sys.modules)\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["False", "True"]

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from functools import cache
 
-import cv2
 import numpy as np
 
 __all__ = [
@@ -58,6 +57,10 @@ def to_colour_space(srgb: np.ndarray, space: str) -> np.ndarray:
     """
     if space == "rgb":
         return srgb
+    # OpenCV is imported on first use, not with the package: its 10 MB are then not resident
+    # during Stage 0's CNN pass, one of a decomposition's two peaks of memory
+    import cv2
+
     x = np.ascontiguousarray(srgb, dtype=np.float32)
     if space == "hsv":
         hsv = cv2.cvtColor(x, cv2.COLOR_RGB2HSV)
@@ -71,6 +74,8 @@ def to_colour_space(srgb: np.ndarray, space: str) -> np.ndarray:
 
 def gaussian_derivatives(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(d/dx, d/dy)`` of a float32 ``HxW`` image with Gaussian derivative filters, sigma 1."""
+    import cv2  # on first use (see to_colour_space)
+
     u = np.arange(-4, 5, dtype=np.float32)
     g = np.exp(-0.5 * u * u)
     g /= g.sum()

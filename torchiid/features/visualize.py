@@ -12,7 +12,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-import cv2
 import numpy as np
 import torch
 
@@ -187,6 +186,8 @@ def overlay_masks(
         tile = np.where(mask[..., None], (1 - alpha) * base + alpha * colour, base)
         tile = tile.round().astype(np.uint8)
         if contour:
+            import cv2  # on first use (see torchiid.features.proposal_features)
+
             cnts, _ = cv2.findContours(
                 mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE
             )
@@ -226,6 +227,8 @@ def draw_patch_grid(
         raise ParameterError("grid contains NaN or infinite coordinates")
     col = tuple(int(c) for c in colour)
     pts = np.round(g).astype(np.int64)
+    import cv2  # on first use (see torchiid.features.proposal_features)
+
     for row in pts.tolist():  # one call per patch, not per pixel
         if len(row) == 4:
             x0, y0, x1, y1 = row
