@@ -2,30 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import re
-import sys
-from pathlib import Path
 
 import pytest
 import torch
 
-ROOT = Path(__file__).resolve().parents[2]
-
 
 @pytest.fixture(scope="module")
-def tool():
-    spec = importlib.util.spec_from_file_location("bench_steps", ROOT / "tools/bench_steps.py")
-    module = importlib.util.module_from_spec(spec)
-    path = list(sys.path)
-    sys.modules["bench_steps"] = module
-    try:
-        spec.loader.exec_module(module)
-        yield module
-    finally:
-        del sys.modules["bench_steps"]
-        sys.modules.pop("bench_bell", None)
-        sys.path[:] = path
+def tool(load_tool):
+    return load_tool("bench_steps")
 
 
 def test_every_step_is_measured_and_tabled(tool, tmp_path):

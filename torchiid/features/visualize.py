@@ -180,14 +180,14 @@ def overlay_masks(
     rows = math.ceil(n / cols)
     out = np.zeros((rows * h, cols * w, 3), dtype=np.uint8)
     base = img.astype(np.float32)
+    import cv2  # on first use, once per call (see torchiid.features.proposal_features)
+
     for i in range(n):  # one tile per mask; pixels are vectorised
         mask = m[i].astype(bool)
         colour = _PALETTE[i % len(_PALETTE)].astype(np.float32)
         tile = np.where(mask[..., None], (1 - alpha) * base + alpha * colour, base)
         tile = tile.round().astype(np.uint8)
         if contour:
-            import cv2  # on first use (see torchiid.features.proposal_features)
-
             cnts, _ = cv2.findContours(
                 mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE
             )
@@ -227,7 +227,7 @@ def draw_patch_grid(
         raise ParameterError("grid contains NaN or infinite coordinates")
     col = tuple(int(c) for c in colour)
     pts = np.round(g).astype(np.int64)
-    import cv2  # on first use (see torchiid.features.proposal_features)
+    import cv2  # on first use, once per call (see torchiid.features.proposal_features)
 
     for row in pts.tolist():  # one call per patch, not per pixel
         if len(row) == 4:
