@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import pytest
@@ -12,15 +10,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
-def tool():
-    spec = importlib.util.spec_from_file_location(
-        "check_structure", ROOT / "tools/check_structure.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["check_structure"] = module
-    spec.loader.exec_module(module)
-    yield module
-    del sys.modules["check_structure"]
+def tool(load_tool):
+    return load_tool("check_structure")
 
 
 def _package(tmp_path: Path, files: dict[str, str]) -> Path:
