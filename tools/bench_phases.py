@@ -5,22 +5,24 @@ Usage:
 
 ``tools/bench_peaks.py`` gives a process's two peaks from outside; this tool says which step
 reaches them and what glibc's allocator holds there. It runs ``torchiid decompose`` on one
-photo (coffee from ``skimage.data``, 3:2, ``--size`` px on the long side, as
-``tools/bench_steps.py`` makes it; or ``--photo``) in a child process that adds only a thread
-reading its own resident memory (``/proc/self/statm``) every half millisecond, and marks the
-steps: Stage 0's CNN pass and proposals, then each alternation's shading solve, the
-reflectance stage's terms (its colour features and weights) and its Split-Bregman solve.
+photo (coffee from ``skimage.data``, 3:2, ``--size`` px on the long side, made as for
+``tools/bench_steps.py``; or ``--photo``) in a child process, with this checkout's torchiid
+first on its path, that adds only a thread reading its own resident memory
+(``/proc/self/statm``) about every half millisecond (further apart while the run's Python
+code holds the interpreter's lock), and marks the steps: Stage 0's CNN pass and proposals,
+then each alternation's shading solve, the reflectance stage's terms (its colour features
+and weights) and its Split-Bregman solve.
 
-For each step it prints the resident memory when the step starts and its peak, and, at that
-peak, glibc's allocator (``mallinfo2``): the bytes in use and the bytes free inside its heap,
-and the address space of the buffers it maps one by one (those above its mmap threshold, such
-as onnxruntime's arena and the reflectance stage's weights: reserved, not all of it resident).
-Resident memory does not fall when a buffer inside the heap is freed, so a step's peak is
-often read after its temporaries are gone: the free bytes then hold them. Free bytes inside
-the heap are memory no tensor uses, freed buffers below allocations still in use, which the
-allocator cannot give back. The last row is the rest of the run (start-up, the steps between,
-the outputs). Linux only; the allocator's columns need glibc 2.33 or later. Printed: a
-Markdown table in MiB.
+For each step it prints the resident memory when the step starts and its peak, and glibc's
+allocator (``mallinfo2``) at the first reading of that peak (at the step's start for a step
+whose memory only falls): the bytes in use and the bytes free inside its heap, and the
+address space of the buffers it maps one by one (those above its mmap threshold, such as
+onnxruntime's arena and the reflectance stage's weights: reserved, not all of it resident).
+Freeing a buffer inside the heap need not lower the resident memory: the free bytes are
+memory no tensor uses, freed buffers below allocations still in use, which the allocator
+does not give back by itself (``malloc_trim`` can). The last row is the rest of the run
+(start-up, the steps between, the outputs). Linux only; the allocator's columns need glibc
+2.33 or later. Printed: a Markdown table in MiB.
 
 The marks wrap a few internal functions by name (:mod:`torchiid.pipeline.alternation`'s
 ``solve_shading``, :mod:`torchiid.stages.reflectance`'s ``assemble_reflectance_terms`` and
@@ -71,7 +73,7 @@ def heap_reader() -> Callable[[], tuple[float, float, float]] | None:
         return None
     info.restype = _MallInfo2
 
-    def read() -> tuple[float, float]:
+    def read() -> tuple[float, float, float]:
         m = info()
         return m.uordblks / MIB, m.fordblks / MIB, m.hblkhd / MIB
 
@@ -81,9 +83,11 @@ def heap_reader() -> Callable[[], tuple[float, float, float]] | None:
 class PhaseRecorder:
     """The resident memory at the start and the peak of each named step, in order.
 
-    ``rss`` reads the resident memory in MiB; ``heap`` (optional) reads glibc's heap at each
-    new peak. Steps are entered with :meth:`enter`; :meth:`sample` (the sampling thread's
-    body, one reading) charges a reading to the step running, or to :data:`REST`.
+    ``rss`` reads the resident memory in MiB; ``heap`` (optional) reads glibc's allocator at
+    the first reading of each step's peak (at its start, for a step whose memory only falls).
+    Steps are entered with :meth:`enter`; :meth:`sample` (the sampling thread's body, one
+    reading) charges a reading to the step running, or to :data:`REST`. A lock keeps a
+    reading and the step it is charged to together, whichever thread takes it.
     """
 
     def __init__(
@@ -94,31 +98,35 @@ class PhaseRecorder:
         self.rss, self.heap = rss, heap
         self.current = REST
         self.rows: dict[str, dict[str, float | None]] = {}
+        self._lock = threading.Lock()
         self._start(REST)
+
+    def _read_heap(self, row: dict[str, float | None]) -> None:
+        if self.heap is not None:
+            row["in_use"], row["free"], row["mapped"] = self.heap()
 
     def _start(self, name: str) -> None:
         if name not in self.rows:
             now = self.rss()
             self.rows[name] = dict(start=now, peak=now, in_use=None, free=None, mapped=None)
-            if self.heap is not None:  # a step whose memory only falls peaks at its start
-                row = self.rows[name]
-                row["in_use"], row["free"], row["mapped"] = self.heap()
+            self._read_heap(self.rows[name])
 
     def enter(self, name: str) -> None:
-        self._start(name)
-        self.current = name
+        with self._lock:
+            self._start(name)
+            self.current = name
 
     def leave(self) -> None:
-        self.current = REST
+        with self._lock:
+            self.current = REST
 
     def sample(self) -> None:
-        name = self.current
-        value = self.rss()
-        row = self.rows[name]
-        if value >= row["peak"]:  # type: ignore[operator]
-            row["peak"] = value
-            if self.heap is not None:
-                row["in_use"], row["free"], row["mapped"] = self.heap()
+        with self._lock:
+            row = self.rows[self.current]
+            value = self.rss()
+            if value > row["peak"]:  # type: ignore[operator]
+                row["peak"] = value
+                self._read_heap(row)
 
     def mark(self, label: str, fn: Callable, numbered: bool = True) -> Callable:
         """``fn`` wrapped so that each call is a step: ``label`` and the call's number."""
@@ -182,9 +190,10 @@ def _child(photo: Path, out: Path, report: Path) -> None:
     stop.set()
     thread.join()
     rec.sample()
-    if status != 0:
-        raise SystemExit(f"bench_phases.py: torchiid decompose {photo} failed ({status})")
-    hwm = [int(x.split()[1]) / 1024 for x in open("/proc/self/status") if x.startswith("VmHWM")]
+    if status != 0:  # the command has said why on stderr, which the parent reads
+        raise SystemExit(status)
+    with open("/proc/self/status") as status_file:
+        hwm = [int(x.split()[1]) / 1024 for x in status_file if x.startswith("VmHWM")]
     report.write_text(json.dumps({"rows": rec.table(), "process_peak": hwm[0]}))
 
 
@@ -217,24 +226,28 @@ def main(argv: list[str] | None = None) -> None:
     if args.child is not None:
         _child(*args.child)
         return
-    if not Path("/proc/self/statm").exists():
-        raise SystemExit("bench_phases.py: reads /proc/self/statm: Linux only")
     if args.photo is not None and not args.photo.is_file():
         raise SystemExit(f"bench_phases.py: --photo {args.photo}: no such file")
+    if not Path("/proc/self/statm").exists():
+        raise SystemExit("bench_phases.py: reads /proc/self/statm: Linux only")
     root = Path(__file__).resolve().parents[1]
+    # the child measures this checkout's torchiid, whatever else is installed
+    paths = [str(root), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(paths))
     with tempfile.TemporaryDirectory(prefix="bench-phases-") as tmp:
         work = Path(tmp)
-        photo = args.photo
+        photo = args.photo.resolve() if args.photo is not None else None
         if photo is None:
             from bench_bell import make_photos
 
             (photo, *_) = make_photos(work / "photos", args.size, round(args.size * 2 / 3))
         report = work / "report.json"
         cmd = [sys.executable, __file__, "--child", str(photo), str(work / "out"), str(report)]
-        run = subprocess.run(cmd, cwd=root, capture_output=True, text=True)
+        run = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True)
         if run.returncode != 0:
-            tail = run.stderr.strip().splitlines()[-1:] or ["(no output)"]
-            raise SystemExit(f"bench_phases.py: the measured process failed: {tail[0]}")
+            lines = run.stderr.strip().splitlines() or ["(no output)"]
+            said = [x for x in lines if x.startswith("torchiid: error:")] or lines[-1:]
+            raise SystemExit(f"bench_phases.py: the measured process failed: {said[0]}")
         result = json.loads(report.read_text())
     title = f"`torchiid decompose` on {photo.name}: resident memory per step, MiB"
     print(render(result, title))

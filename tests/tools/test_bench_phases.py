@@ -59,11 +59,16 @@ def test_each_reading_is_charged_to_the_step_running(tool):
     # a step whose memory only falls peaks at its start, where the heap is read
     assert rows["shading solve 3"]["start"] == rows["shading solve 3"]["peak"] == 137.5
     assert rows[tool.REST]["peak"] == 400
-    # the heap is read at each step's peak: in use, free, mapped
+    # the heap is read at the first reading of each step's peak: in use, free, mapped
     assert rows["Stage 0: CNN pass"]["in_use"] == 75
+    assert rows["Stage 0: CNN pass"]["free"] == 13  # the 3rd reading: REST's start, its start
     assert rows["shading solve 2"]["in_use"] == 70
     assert rows["shading solve 3"]["in_use"] == 137.5 / 2
     assert rows[tool.REST]["in_use"] == 200 and rows[tool.REST]["mapped"] == 1.0
+    # memory that stays at a step's start is not read again (mallinfo2 takes the heap's lock)
+    reads = mem.heap_reads
+    rec.mark("flat", lambda: [rec.sample() for _ in range(3)])()
+    assert mem.heap_reads == reads + 1 and rec.rows["flat 1"]["free"] == 10 + reads + 1
 
 
 def test_without_a_heap_reader_the_columns_say_so(tool):
@@ -87,8 +92,9 @@ def test_a_real_run_marks_every_step(tool, tmp_path, capsys):
     for k in range(1, 6):  # the default preset's five alternations
         expected += [f"shading solve {k}", f"reflectance terms {k}", f"reflectance solve {k}"]
     assert steps == [*expected, tool.REST]
-    for row in result["rows"]:
-        assert 0 < row["start"] <= row["peak"] <= result["process_peak"] + 1, row
+    peaks = [row["peak"] for row in result["rows"]]
+    # the readings see the process's peak (VmHWM), but for what lives under half a millisecond
+    assert 0.8 * result["process_peak"] < max(peaks) <= result["process_peak"] + 1
     printed = capsys.readouterr().out
     assert "| reflectance solve 5 |" in printed and "(VmHWM)" in printed
 
@@ -99,9 +105,11 @@ def test_a_missing_photo_is_a_one_line_error(tool, tmp_path):
     assert "no such file" in str(stop.value) and "\n" not in str(stop.value)
 
 
-def test_the_child_reports_a_failed_decomposition(tool, tmp_path):
-    bad = tmp_path / "bad.png"
-    bad.write_bytes(b"not a png")
+@pytest.mark.skipif(not Path("/proc/self/statm").exists(), reason="reads /proc (Linux)")
+def test_the_child_says_why_a_decomposition_failed(tool, tmp_path, monkeypatch):
+    (tmp_path / "bad.png").write_bytes(b"not a png")
+    monkeypatch.chdir(tmp_path)  # a path relative to the caller's folder
     with pytest.raises(SystemExit) as stop:
-        tool.main(["--photo", str(bad)])
-    assert "failed" in str(stop.value) and "\n" not in str(stop.value)
+        tool.main(["--photo", "bad.png"])
+    message = str(stop.value)
+    assert "\n" not in message and "bad.png: is not an image" in message, message
