@@ -228,6 +228,10 @@ def main(argv: list[str] | None = None) -> None:
         return
     if args.photo is not None and not args.photo.is_file():
         raise SystemExit(f"bench_phases.py: --photo {args.photo}: no such file")
+    if args.photo is None and args.size < 90:  # torchiid decomposes photos of 60 px or more
+        raise SystemExit(f"bench_phases.py: --size {args.size}: the 3:2 photo needs 90 px or more")
+    if args.json is not None and not args.json.resolve().parent.is_dir():
+        raise SystemExit(f"bench_phases.py: --json {args.json}: its folder does not exist")
     if not Path("/proc/self/statm").exists():
         raise SystemExit("bench_phases.py: reads /proc/self/statm: Linux only")
     root = Path(__file__).resolve().parents[1]

@@ -99,10 +99,19 @@ def test_a_real_run_marks_every_step(tool, tmp_path, capsys):
     assert "| reflectance solve 5 |" in printed and "(VmHWM)" in printed
 
 
-def test_a_missing_photo_is_a_one_line_error(tool, tmp_path):
+@pytest.mark.parametrize(
+    ("args", "said"),
+    [
+        (["--photo", "nothing.png"], "no such file"),
+        (["--size", "60"], "needs 90 px or more"),
+        (["--json", "no/such/folder/out.json"], "its folder does not exist"),
+    ],
+)
+def test_bad_arguments_are_one_line_errors_before_any_run(tool, tmp_path, monkeypatch, args, said):
+    monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as stop:
-        tool.main(["--photo", str(tmp_path / "nothing.png")])
-    assert "no such file" in str(stop.value) and "\n" not in str(stop.value)
+        tool.main(args)
+    assert said in str(stop.value) and "\n" not in str(stop.value)
 
 
 @pytest.mark.skipif(not Path("/proc/self/statm").exists(), reason="reads /proc (Linux)")
