@@ -59,6 +59,8 @@ STAGE0 = {
     "mid-level g": "PCA / mid-level features",
     "segments": "segments (beyond the proposals, which they overlap)",
 }
+#: S_l's texture marks (made once at the working resolution when t_x is on)
+MARKS = {"texture marks": "texture marks of S_l"}
 REST = "inputs and full-resolution layers"
 WORKER_RSS = "peak memory, worker RSS (GB)"
 CUDA_PEAK = "peak CUDA memory allocated (GB)"
@@ -110,7 +112,7 @@ def _measure_once(paths, settings, state, phash) -> dict[str, float]:
             tx.commit()
     t3 = time.perf_counter()
     steps = {"decode": t1 - t0}
-    steps.update({k: out.times[k] for k in STAGE0 if k in out.times})
+    steps.update({k: out.times[k] for k in (*STAGE0, *MARKS) if k in out.times})
     steps.update({k: v for k, v in out.times.items() if k.startswith(("shading ", "reflectance "))})
     steps[REST] = (t2 - t1) - sum(v for k, v in steps.items() if k != "decode")
     steps["outputs"] = t3 - t2
@@ -230,7 +232,7 @@ def run_cli(args: argparse.Namespace, photos: list[Path], device: str, work: Pat
 
 
 def _rows(k: int) -> list[str]:
-    rows = ["decode", *STAGE0.values()]
+    rows = ["decode", *STAGE0.values(), *MARKS.values()]
     rows += [f"shading solve {i}" for i in range(1, k + 1)]
     rows += [f"reflectance solve {i}" for i in range(1, k + 1)]
     return [*rows, REST, "outputs", "total"]
@@ -239,7 +241,7 @@ def _rows(k: int) -> list[str]:
 def _cells(res: dict, k: int) -> dict[str, str]:
     """The table's cells of one worker's result (seconds per photo)."""
     n, steps = res["batch"], res["steps"]
-    named = {STAGE0.get(key, key): v for key, v in steps.items()}
+    named = {STAGE0.get(key, MARKS.get(key, key)): v for key, v in steps.items()}
     for i in range(1, k + 1):
         named[f"shading solve {i}"] = steps.get(f"shading {i}", float("nan"))
         named[f"reflectance solve {i}"] = steps.get(f"reflectance {i}", float("nan"))

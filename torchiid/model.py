@@ -32,7 +32,7 @@ from torchiid.core.exceptions import ParameterError
 from torchiid.core.memory import release_free_memory
 from torchiid.features.semantic import SemanticFeatures, semantic_features
 from torchiid.params import PRESETS, Parameters
-from torchiid.pipeline.alternation import Alternation, warn_unconverged
+from torchiid.pipeline.alternation import Alternation, texture_map, warn_unconverged
 from torchiid.pipeline.coarse import coarse_alternations, coarse_size, hand_over
 from torchiid.pipeline.inputs import WorkingInputs, working_inputs
 from torchiid.pipeline.layers import (
@@ -166,6 +166,12 @@ def decompose(
         features = semantic_features(work.image, params)
         release_free_memory()  # Stage 0's buffers, before the solves that set the peak
     times = dict(features.times)
+    # S_l's texture marks, at the working resolution for every alternation (after Stage 0,
+    # whose CNN pass sets a peak: the buffers they free go back after the half-size run)
+    t0 = time.perf_counter()
+    texture = texture_map(work, params)
+    if texture is not None:
+        times["texture marks"] = time.perf_counter() - t0
     total = params.iterations - work.first + 1  # the alternations this call runs
     if progress is not None:
         progress("features", 0, total)
@@ -178,10 +184,14 @@ def decompose(
     # k alternations of Stage 1 (L2 shading) and Stage 2 (L1 reflectance); with coarse_scale
     # below 1, all but the last on the image at that scale, the last starting where they end
     first = work.first
-    run = Alternation(work, features, params, keep_layers=return_iterations)
+    run = Alternation(work, features, params, keep_layers=return_iterations, texture=texture)
     size = coarse_size(work, params)
     if size is not None:
-        hand_over(coarse_alternations(work, features, params, size, run.keep_layers, done), run)
+        # a temporary: the half-size run and its caches go before the full-size alternation
+        hand_over(
+            coarse_alternations(work, features, params, size, run.keep_layers, done, texture),
+            run,
+        )
         release_free_memory()  # the half-size run's buffers, before the full-size one
         first = params.iterations
     for k in range(first, params.iterations + 1):

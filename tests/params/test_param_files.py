@@ -62,10 +62,10 @@ def test_partial_json_keeps_base(tmp_path):
 @pytest.mark.parametrize("preset", ["default", "converged"])
 def test_a_file_written_before_the_groups_loads_unchanged(preset, caplog):
     # complete records written by the flat Parameters (no version): every value as written,
-    # and the parameters added since (t_x, t_x_sigma, coarse_scale) at the values that
+    # and the parameters added since (t_x, t_x_sigma, coarse_scale, t_xc) at the values that
     # version ran, with a warning
     path = DATA / f"before-groups-{preset}-params.json"
-    expected = Parameters.preset(preset).replace(t_x_sigma=3.0, coarse_scale=1.0)
+    expected = Parameters.preset(preset).replace(t_x=0.0, t_x_sigma=3.0, coarse_scale=1.0, t_xc=0.0)
     if preset == "converged":
         expected = expected.replace(max_side=300)
     else:  # the values the default had when the file was written
@@ -75,7 +75,9 @@ def test_a_file_written_before_the_groups_loads_unchanged(preset, caplog):
         assert Parameters.from_json(path, base=Parameters.preset("texture")) == expected
     assert caplog.text.count("it names every parameter but coarse_scale, t_x") == 2
     assert json.loads(path.read_text()) == {
-        k: v for k, v in expected.to_dict().items() if k not in ("t_x", "t_x_sigma", "coarse_scale")
+        k: v
+        for k, v in expected.to_dict().items()
+        if k not in ("t_x", "t_x_sigma", "coarse_scale", "t_xc")
     }
 
 
@@ -99,7 +101,7 @@ def test_a_versioned_file_replays_what_its_version_ran(tmp_path, caplog):
     }  # fmt: skip
     assert set(later) == {
         "lambda_s", "t_e", "t_d", "t_h", "bregman_gap_tol", "bregman_theta_floor", "base_mix",
-        "t_x", "t_x_sigma", "coarse_scale",
+        "t_x", "t_x_sigma", "coarse_scale", "t_xc",
     }  # fmt: skip
     assert p == base.replace(iterations=3, t_i=1.5, **later)
     assert (p.shading.base_mix, p.shading.lambda_s, p.reflectance.bregman_gap_tol) == (1.0, 0, 0)
@@ -112,7 +114,7 @@ def test_a_versioned_file_replays_what_its_version_ran(tmp_path, caplog):
     # "0.10.0" comes after "0.9.0" (as strings it would not): t_e is the file's base's
     path.write_text(json.dumps({"torchiid_version": "0.10.0"}))
     assert Parameters.from_json(path, base=base) == base.replace(
-        bregman_gap_tol=0.0, bregman_theta_floor=1.0, base_mix=1.0, t_x_sigma=3.0
+        bregman_gap_tol=0.0, bregman_theta_floor=1.0, base_mix=1.0, t_x_sigma=3.0, t_xc=0.0
     )
     # a file of this version: nothing to replay, no warning
     caplog.clear()

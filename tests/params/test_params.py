@@ -26,9 +26,10 @@ def test_paper_preset_has_the_papers_values():
     assert (f.patch_size, f.patch_stride, sh.lle_k) == (60, 30, 10)
 
 
-def test_print_preset_differs_from_default_only_in_t_h():
+def test_print_preset_differs_from_default_only_in_t_h_and_no_texture_marks():
     default, printed = Parameters().to_dict(), Parameters.preset("print").to_dict()
-    assert {k for k in default if default[k] != printed[k]} == {"t_h"}
+    assert {k for k in default if default[k] != printed[k]} == {"t_h", "t_x"}
+    assert printed["t_x"] == 0.0
     assert printed["t_h"] == 0.5 and Parameters.preset("converged").shading.t_h == 0.0
     assert all(Parameters.preset(n).shading.t_d == 0.0 for n in ("default", "print", "converged"))
 
@@ -42,6 +43,7 @@ def test_default_preset_differs_from_paper_only_where_tuned():
         "bregman_cg_iter",
         "t_e",  # nor is S_l's cut beside colour edges
         "base_mix",  # the matting base of later alternations mixes in the image
+        "t_x",  # nor are S_l's targets without the fine texture that changes colour
         "coarse_scale",  # all but the last alternation at half the size (a solver setting)
     }
     # the no-argument object is what decompose() does by default

@@ -36,6 +36,7 @@ def test_every_step_is_measured_and_tabled(tool, tmp_path):
         "CNN patch features",
         "proposals (selective search)",
         "PCA / mid-level features",
+        "texture marks of S_l",
         "shading solve 1",
         "reflectance solve 1",
         "outputs",

@@ -50,6 +50,7 @@ class SemanticFeatures:
         image: torch.Tensor,
         base_image: torch.Tensor | None = None,
         mask: torch.Tensor | None = None,
+        texture: torch.Tensor | None = None,
     ) -> ShadingProblem:
         """Stage 1's problem on ``image`` with these features (``S_c``'s and ``S_m``'s inputs)."""
         return ShadingProblem(
@@ -59,6 +60,7 @@ class SemanticFeatures:
             similarity=self.similarity,
             base_image=base_image,
             mask=mask,
+            texture=texture,
         )
 
     def reflectance_problem(

@@ -38,6 +38,7 @@ ADDED_SINCE: dict[str, dict[str, Any]] = {
     "1.0.0": {"t_x": 0.0},
     "1.1.0": {"t_x_sigma": 3.0},
     "1.13.0": {"coarse_scale": 1.0},
+    "1.16.0": {"t_xc": 0.0},
 }
 
 

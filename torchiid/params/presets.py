@@ -8,21 +8,24 @@ __all__ = ["PRESETS", "VARIANTS", "ALL_ON"]
 #: The values' evidence (MIT-Berkeley scores, times) is in the documentation's Method page.
 PRESETS: dict[str, dict[str, Any]] = {
     # the paper's energy with two additions that hold in cross-validation (S_l's cut beside
-    # colour edges, a mixed matting base), early-stopped solvers and the alternations before
-    # the last at half the working resolution (= Parameters())
+    # colour edges, a mixed matting base) and S_l's targets without the fine texture that
+    # changes colour, early-stopped solvers and the alternations before the last at half the
+    # working resolution (= Parameters())
     "default": {},
     # printed matter (documents, labels, packaging, posters): S_l does not tie the pixels of
     # thin strokes either, so black text on white paper stays in the reflectance
-    "print": {"t_h": 0.5},
+    "print": {"t_h": 0.5, "t_x": 0.0},
     # densely textured surfaces (tiles, wood grain, patterned fabric, fur): S_l takes its
-    # targets from the image without its fine texture, so the texture stays in the reflectance
-    "texture": {"t_x": 0.02},
+    # targets from the image without all of its fine texture, also where it keeps its colour
+    # (the default only where it changes colour), so the texture stays in the reflectance
+    "texture": {"t_xc": 0.0},
     # the paper's energy with the solvers at their most thorough
     "paper": {
         "base_mix": 1.0,
         "lambda_m": 0.02,
         "lambda_s": 0.0,
         "t_e": 0.0,
+        "t_x": 0.0,
         "cg_max_iter": 300,
         "warm_cg_max_iter": 0,
         "bregman_iter": 4,
@@ -56,6 +59,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "matting_eps": 3e-4,
         "lambda_m": 0.005,
         "lambda_s": 0.003,
+        "t_x": 0.0,
     },
 }
 

@@ -19,11 +19,30 @@ from torchiid.params import Parameters, ReflectanceParameters, ShadingParameters
 from torchiid.pipeline.inputs import WorkingInputs
 from torchiid.pipeline.layers import gray_shading
 from torchiid.pipeline.results import IterationLayers, SolveReport
+from torchiid.priors.texture import texture_confidence
 from torchiid.solvers.split_bregman import SplitBregmanResult
 from torchiid.stages.reflectance import ReflectanceCache, solve_reflectance
 from torchiid.stages.shading import ShadingDiagnostics, ShadingSystemCache, solve_shading
 
-__all__ = ["Alternation", "shading_report", "reflectance_report", "warn_unconverged"]
+__all__ = [
+    "Alternation",
+    "texture_map",
+    "shading_report",
+    "reflectance_report",
+    "warn_unconverged",
+]
+
+
+def texture_map(work: WorkingInputs, params: Parameters) -> torch.Tensor | None:
+    """``S_l``'s texture confidence of ``work.image`` (``None``: ``t_x`` off, or no ``S_l``).
+
+    The 1-px detection sees a different texture at every scale, so it is made once at the
+    working resolution, and a coarse run takes it area-averaged.
+    """
+    o = params.shading
+    if not (o.t_x > 0 and o.active and o.use_sl):
+        return None
+    return texture_confidence(work.image, o.t_x, work.mask, o.dark_eps, t_xc=o.t_xc)
 
 
 class Alternation:
@@ -36,6 +55,8 @@ class Alternation:
         features: Stage 0's features of ``work.image``.
         params: the parameters (the stages' groups come from :meth:`Parameters.alternation`).
         keep_layers: keep every alternation's layers (:attr:`layers`).
+        texture: ``S_l``'s texture confidence at this size (``None``: made from
+            ``work.image`` when first needed, :func:`texture_map`).
 
     Attributes:
         sigma, rho: the last Stage 1 layers ``σ``, ``ρ = I / σ``.
@@ -51,9 +72,11 @@ class Alternation:
         features: SemanticFeatures,
         params: Parameters,
         keep_layers: bool = False,
+        texture: torch.Tensor | None = None,
     ) -> None:
         self.work, self.features, self.params = work, features, params
         self.keep_layers = keep_layers
+        self._texture = texture
         self.shading_cache = ShadingSystemCache()  # S_c, S_m, S_l, S_s are built once per image
         self.reflectance_cache = ReflectanceCache()  # and B's proposal-feature factor
         self.log_shading: torch.Tensor | None = None
@@ -64,6 +87,12 @@ class Alternation:
         self.solves: list[SolveReport] = []
         self.times: dict[str, float] = {}
 
+    def texture(self) -> torch.Tensor | None:
+        """``S_l``'s texture confidence at this size: the one given, else :func:`texture_map`."""
+        if self._texture is None:
+            self._texture = texture_map(self.work, self.params)
+        return self._texture
+
     def shading_step(self, k: int, shading: ShadingParameters) -> None:
         """Stage 1 of alternation ``k`` (Eq. 1): ``σ`` and ``ρ = I / σ``.
 
@@ -73,7 +102,9 @@ class Alternation:
         t0 = time.perf_counter()
         img, previous = self.work.image, self.reflectance
         if shading.active:
-            problem = self.features.shading_problem(img, base_image=previous, mask=self.work.mask)
+            problem = self.features.shading_problem(
+                img, base_image=previous, mask=self.work.mask, texture=self.texture()
+            )
             x0 = self.log_shading if self.log_shading is not None else self.work.log_shading0
             sh = solve_shading(
                 problem, shading, x0=x0, cache=self.shading_cache, seed=self.params.seed,

@@ -131,12 +131,18 @@ def coarse_alternations(
     size: tuple[int, int],
     keep_layers: bool,
     done: Done,
+    texture: torch.Tensor | None = None,
 ) -> Alternation:
-    """Alternations ``1 .. k − 1`` at ``size``; ``done(k, run)`` after each."""
+    """Alternations ``1 .. k − 1`` at ``size``; ``done(k, run)`` after each.
+
+    ``texture``: ``S_l``'s texture confidence at the working resolution, area-averaged to
+    ``size`` here (``None``: made at ``size`` when ``t_x`` is on).
+    """
     t0 = time.perf_counter()
     low = coarse_inputs(work, size)
     low_features = coarse_features(features, work.size, size, params)
-    run = Alternation(low, low_features, params, keep_layers)
+    low_texture = None if texture is None else downsample(texture, size)
+    run = Alternation(low, low_features, params, keep_layers, texture=low_texture)
     run.times["coarse inputs"] = time.perf_counter() - t0
     for k in range(1, params.iterations):
         shading, reflectance = params.alternation(k)

@@ -1,4 +1,4 @@
-"""Texture confidence for the local Retinex prior ``S_l`` (``t_x``, off by default).
+"""Texture confidence for the local Retinex prior ``S_l`` (``t_x``; ``t_xc``, its colour marks).
 
 ``S_l`` ties neighbours of one chromaticity and gives their intensity difference to the shading,
 so texture that varies in lightness within one hue (wood grain, tiles' grout, fur, dark print on
@@ -32,6 +32,28 @@ apart); a coarser fit also spreads a hard shadow's edge inside a texture further
 targets, which bounds ``sigma`` from above (the values and their measurements: the
 documentation's Method page). (A pixel confidence of ``S_l`` instead, which asks for equal
 shading at textured pairs, flattens the shading of textured curved surfaces as well.)
+
+**Texture that changes colour** (``t_xc``, the ``default``'s marks). Fine relief and fine
+texture look alike in lightness, but light of one colour scales every channel alike, so the
+fine variation that shading makes leaves the chromaticity as it is, while a surface's own
+pattern almost always changes colour with its lightness (darker wood grain is redder, a
+tabby's dark stripes browner). :func:`colour_texture_evidence` measures that in the same
+window as ``τ``: the fine residuals (1-px local linear fits) of the log-chromaticity ``q`` and
+of the log-intensity ``ℓ``, their window covariance, the slope ``β = ‖cov(q, ℓ)‖ / var(ℓ)``
+(log-chromaticity change per unit of log-intensity) and the correlation ``ρ = ‖cov(q, ℓ)‖ /
+(σ_ℓ σ_q)``. Pixels whose residual is over :data:`OUTLIER` times the window's median do not
+enter, so a single edge does not speak for the window. The evidence ramps from 0 to 1 as
+``ρ`` rises from :data:`CORRELATION` (sensor noise, uncorrelated between the channels, stays
+under it) and as ``β`` rises from ``t_xc``, and it is 0 within :data:`EDGE_RADIUS` px of a
+colour edge (as ``t_e`` 0.015 marks one), where the removal's coarse fit would spread a
+material's step into ``S_l``'s targets. With ``t_xc > 0`` the texture confidence is
+``1 − (1 − c) · evidence``: dense texture that keeps its colour (a same-hue relief, frog
+skin, the mortar of a gray wall) stays the shading's, coloured texture goes to the
+reflectance. With ``t_xc``, ``τ`` is measured on ``ℓ`` (the mean of the log channels) and
+reused as the scale that leaves edge pixels out. So that the marks cost a few percent of a
+decomposition, their window statistics (``τ``'s median, the window means) are taken every
+:data:`_GRID` px in each direction and interpolated (they are 9×9-window statistics, smooth at
+that scale), and the four residuals share one fit whose window sums are float32.
 """
 
 from __future__ import annotations
@@ -39,15 +61,116 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from torchiid.core.check import as_mask, check_image
+from torchiid.core.check import as_mask, check_image, check_shape
 from torchiid.core.exceptions import ParameterError
 from torchiid.core.local_fit import local_linear_residual
+from torchiid.priors.shading_terms import edge_confidence, intensity
 
-__all__ = ["REMOVAL_SIGMA", "detexture", "texture_confidence"]
+__all__ = ["REMOVAL_SIGMA", "colour_texture_evidence", "detexture", "texture_confidence"]
 
 #: scale (px) of the local linear fit whose residual :func:`detexture` takes out (the
 #: parameter ``t_x_sigma``)
 REMOVAL_SIGMA = 5.0
+
+#: correlation of the fine chromaticity and intensity residuals at which the colour evidence
+#: starts; it is full 0.3 above (channel noise over the 81-pixel window stays below 0.4)
+CORRELATION = 0.5
+
+#: a pixel whose fine residual is over this many times its window's median is an edge or a
+#: line, not part of a dense texture, and does not enter the colour statistics
+OUTLIER = 3.0
+
+#: no colour evidence within this many px of a colour edge (the removal fit's scale,
+#: ``t_x_sigma``'s default)
+EDGE_RADIUS = 5
+
+#: the colour-edge deviation of those edges: a constant of the marks, the ``default``'s
+#: ``t_e`` (the parameter ``t_e`` does not change it)
+EDGE_DEVIATION = 0.015
+
+#: rows per block of the exact window median, so that its 81 window copies stay small
+_MEDIAN_ROWS = 32
+
+#: the colour mark's window statistics are taken every this many pixels and interpolated
+_GRID = 3
+
+
+def _window_median(r: torch.Tensor, window: int) -> torch.Tensor:
+    """The median over each ``(2w + 1)²`` window of ``r`` (NaN: not part of it; none: 0)."""
+    b, _, h, w = r.shape
+    pad = F.pad(r, (window,) * 4, value=float("nan"))
+    rows = []
+    for y0 in range(0, h, _MEDIAN_ROWS):
+        y1 = min(h, y0 + _MEDIAN_ROWS)
+        part = F.unfold(pad[..., y0 : y1 + 2 * window, :], 2 * window + 1)
+        rows.append(part.view(b, -1, y1 - y0, w).nanmedian(1, keepdim=True).values)
+    return torch.cat(rows, -2).nan_to_num(0.0)
+
+
+def _grid_median(r: torch.Tensor, window: int) -> torch.Tensor:
+    """The window median at every :data:`_GRID`-th pixel (NaN: not part of it; none: 0)."""
+    b, _, h, w = r.shape
+    hs, ws = (h - 1) // _GRID + 1, (w - 1) // _GRID + 1
+    pad = F.pad(r, (window,) * 4, value=float("nan"))
+    cols = F.unfold(pad, 2 * window + 1, stride=_GRID).view(b, -1, hs, ws)
+    return cols.nanmedian(1, keepdim=True).values.nan_to_num(0.0)
+
+
+def _grid_mean(x: torch.Tensor, window: int) -> torch.Tensor:
+    """The window mean (zeros outside) at every :data:`_GRID`-th pixel, as two 1-D passes."""
+    k = 2 * window + 1
+    x = F.avg_pool2d(x, (k, 1), (_GRID, 1), (window, 0), count_include_pad=True)
+    return F.avg_pool2d(x, (1, k), (1, _GRID), (0, window), count_include_pad=True)
+
+
+def _from_grid(grid: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """Bilinear interpolation of grid values (point ``i`` at pixel ``i·_GRID``) to every pixel."""
+    size = ((grid.shape[-2] - 1) * _GRID + 1, (grid.shape[-1] - 1) * _GRID + 1)
+    out = F.interpolate(grid, size=size, mode="bilinear", align_corners=True)
+    return F.pad(out, (0, w - size[1], 0, h - size[0]), mode="replicate")
+
+
+def _check(t_x: float, t_xc: float, window: int) -> None:
+    if not t_x > 0 or not window > 0:
+        raise ParameterError(f"t_x and window must be > 0, got t_x={t_x}, window={window}")
+    if not t_xc >= 0:
+        raise ParameterError(f"t_xc must be >= 0, got {t_xc}")
+
+
+def _colour_marks(
+    image: torch.Tensor,
+    t_xc: float,
+    mask: torch.Tensor | None,
+    dark_eps: float,
+    window: int,
+    t_e: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(τ, evidence)``: the window median of ``|r_ℓ|`` and the colour evidence."""
+    mask = None if mask is None else as_mask(mask, image, "mask")
+    # ℓ along (1, 1, 1) in log-RGB and q orthogonal to it: light of one colour moves only ℓ
+    log_rgb = image.float().clamp_min(dark_eps).log()
+    ell = log_rgb.mean(1, keepdim=True)
+    q = log_rgb - ell
+    r = local_linear_residual(torch.cat([ell, q], 1), mask, 1.0, torch.float32).float()
+    r_ell, r_q = r[:, :1], r[:, 1:]
+    h, w = r.shape[-2:]
+    inside = as_mask(mask, r_ell, "mask")
+    tau = _from_grid(_grid_median(torch.where(inside, r_ell.abs(), torch.nan), window), h, w)
+    keep = (inside & (r_ell.abs() <= OUTLIER * tau.clamp_min(1e-6))).float()
+    terms = [keep, keep * r_ell**2, keep * (r_q**2).sum(1, keepdim=True), keep * r_q * r_ell]
+    sums = _grid_mean(torch.cat(terms, 1), window)
+    n = sums[:, :1].clamp_min(1e-12)
+    var_ell, var_q = sums[:, 1:2] / n, sums[:, 2:3] / n
+    cov = ((sums[:, 3:] / n) ** 2).sum(1, keepdim=True).sqrt()
+    slope = cov / var_ell.clamp_min(1e-12)
+    corr = cov / (var_ell * var_q).sqrt().clamp_min(1e-12)
+    ramp = ((corr - CORRELATION) / 0.3).clamp(0, 1) * ((slope - t_xc) / (2 * t_xc)).clamp(0, 1)
+    evidence = _from_grid(ramp, h, w)
+    edges = (edge_confidence(image, t_e, dark_eps, mask) < 0.5).float()
+    side, reach = 2 * EDGE_RADIUS + 1, EDGE_RADIUS
+    near = F.max_pool2d(edges, (side, 1), 1, (reach, 0))
+    near = F.max_pool2d(near, (1, side), 1, (0, reach))
+    return tau, evidence * (1 - near) * inside
 
 
 def texture_confidence(
@@ -56,6 +179,7 @@ def texture_confidence(
     mask: torch.Tensor | None = None,
     dark_eps: float = 1e-4,
     window: int = 4,
+    t_xc: float = 0.0,
 ) -> torch.Tensor:
     """``exp(−τ²/t_x²)``: 1 away from fine texture, near 0 inside it (see the module notes).
 
@@ -65,21 +189,54 @@ def texture_confidence(
         mask: optional ``(B, 1, H, W)`` bool; only pixels inside enter the fits and means.
         dark_eps: intensity floor before the log.
         window: half-side ``w`` (px) of the median's square window.
+        t_xc: with ``> 0``, only texture that changes colour with its lightness counts:
+            ``1 − (1 − c) ·`` :func:`colour_texture_evidence`, ``τ`` measured on the mean
+            of the log channels every 3 px and interpolated (0: all dense texture, ``τ``
+            on the log of the mean intensity at every pixel).
 
     Returns:
         ``(B, 1, H, W)`` in the image's dtype.
     """
     check_image(image, "image", channels=3)
-    if not t_x > 0 or not window > 0:
-        raise ParameterError(f"t_x and window must be > 0, got t_x={t_x}, window={window}")
-    logp = image.mean(dim=1, keepdim=True).clamp_min(dark_eps).log()
-    r = local_linear_residual(logp, mask, sigma=1.0).abs()
+    _check(t_x, t_xc, window)
+    mask = None if mask is None else as_mask(mask, image, "mask")
+    if t_xc > 0:
+        tau, evidence = _colour_marks(image, t_xc, mask, dark_eps, window, EDGE_DEVIATION)
+        c = 1 - (1 - torch.exp(-((tau / t_x) ** 2))) * evidence
+        return c.to(image.dtype)
+    r = local_linear_residual(intensity(image, dark_eps).log(), mask, sigma=1.0).abs()
     if mask is not None:
         r = torch.where(as_mask(mask, r), r, torch.nan)  # outside pixels take no part
-    b, _, h, w = r.shape
-    pad = F.pad(r, (window,) * 4, value=float("nan"))
-    tau = F.unfold(pad, 2 * window + 1).view(b, -1, h, w).nanmedian(1, keepdim=True).values
-    return torch.exp(-((tau.nan_to_num(0.0) / t_x) ** 2)).to(image.dtype)
+    tau = _window_median(r, window)
+    return torch.exp(-((tau / t_x) ** 2)).to(image.dtype)
+
+
+def colour_texture_evidence(
+    image: torch.Tensor,
+    t_xc: float,
+    mask: torch.Tensor | None = None,
+    dark_eps: float = 1e-4,
+    window: int = 4,
+    t_e: float = EDGE_DEVIATION,
+) -> torch.Tensor:
+    """How sure each pixel's fine texture changes colour with its lightness (module notes).
+
+    Args:
+        image: ``(B, 3, H, W)`` linear RGB.
+        t_xc: the slope ``β`` (log-chromaticity per unit of log-intensity) at which the
+            evidence starts; it is full at ``3·t_xc``.
+        mask: optional ``(B, 1, H, W)`` bool; only pixels inside enter.
+        dark_eps: intensity floor before the log.
+        window: half-side (px) of the statistics' square window.
+        t_e: the colour-edge deviation of the edge marks whose surroundings get none.
+
+    Returns:
+        ``(B, 1, H, W)`` float32 in ``[0, 1]``.
+    """
+    check_image(image, "image", channels=3)
+    if not t_xc > 0 or not window > 0:
+        raise ParameterError(f"t_xc and window must be > 0, got t_xc={t_xc}, window={window}")
+    return _colour_marks(image, t_xc, mask, dark_eps, window, t_e)[1]
 
 
 def detexture(
@@ -88,14 +245,26 @@ def detexture(
     mask: torch.Tensor | None = None,
     dark_eps: float = 1e-4,
     sigma: float = REMOVAL_SIGMA,
+    t_xc: float = 0.0,
+    confidence: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """``image`` without its fine texture where :func:`texture_confidence` finds it dense.
 
+    ``confidence``, if given, is that confidence made beforehand (``(B, 1, H, W)``): a
+    coarse copy of an image takes its working resolution's confidence, area-averaged, since
+    the 1-px detection sees a different texture at every scale.
+
     Returns:
         ``(B, 3, H, W)``: ``image · exp(−(1 − c) · r')`` with ``c`` the texture confidence and
-        ``r'`` the residual of ``log p`` after its local linear fit at ``sigma`` px.
+        ``r'`` the residual of ``log p`` after its local linear fit at ``sigma`` px (window
+        sums in float32).
     """
-    c = texture_confidence(image, t_x, mask, dark_eps).double()
-    logp = image.mean(dim=1, keepdim=True).clamp_min(dark_eps).log()
-    r = local_linear_residual(logp, mask, sigma=sigma)
+    if confidence is None:
+        c = texture_confidence(image, t_x, mask, dark_eps, t_xc=t_xc).double()
+    else:
+        check_image(image, "image", channels=3)
+        shape = (image.shape[0], 1, *image.shape[-2:])
+        check_shape(confidence, shape, "confidence (ShadingProblem.texture)")
+        c = confidence.double()
+    r = local_linear_residual(intensity(image, dark_eps).log(), mask, sigma, torch.float32)
     return (image.double() * torch.exp(-(1 - c) * r)).to(image.dtype)

@@ -55,6 +55,10 @@ class ShadingProblem:
             matting Laplacian ``S_p`` is made (``ShadingParameters.base_mix``); ``None``: the
             Gaussian-smoothed image is the base.
         mask: ``(B, 1, H, W)`` bool region to decompose, or ``None``.
+        texture: ``(B, 1, H, W)`` the texture confidence of ``S_l``'s targets
+            (:func:`~torchiid.priors.texture.texture_confidence`) made at the working
+            resolution and area-averaged to this size; ``None``: made from ``image`` when
+            ``t_x > 0``.
 
     A prior whose tensors are ``None`` is off whatever its weight.
     """
@@ -65,6 +69,7 @@ class ShadingProblem:
     similarity: torch.Tensor | None = None
     base_image: torch.Tensor | None = None
     mask: torch.Tensor | None = None
+    texture: torch.Tensor | None = None
 
     def replace(self, **changes: object) -> ShadingProblem:
         """A copy with some tensors changed."""

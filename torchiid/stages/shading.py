@@ -28,10 +28,12 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as F
 
+from torchiid.core.cache import input_key
 from torchiid.core.check import check_finite, check_shape
 from torchiid.core.exceptions import ConvergenceWarning, ParameterError
 from torchiid.params import ShadingParameters
 from torchiid.priors.quadratic import SumQuadratic
+from torchiid.priors.texture import texture_confidence
 from torchiid.solvers.multigrid import AMGPreconditioner, GalerkinMultigrid
 from torchiid.solvers.pcg import PCGResult, pcg
 from torchiid.stages.config import ShadingProblem, check_group
@@ -169,6 +171,14 @@ def _solve(
     # neighbourhood (everything else in it starts empty, as without one)
     cache = ShadingSystemCache() if cache is None else cache
     problem, o = task.problem, task.o
+    if problem.texture is None and o.t_x > 0 and task.weights.get("S_l", 0.0) > 0:
+        # S_l's texture marks once at this size: the coarse levels take them area-averaged
+        key = input_key(problem.image, o.t_x, o.t_xc, o.dark_eps, problem.mask)
+        if cache.texture is None or cache.texture[0] != key:
+            made = texture_confidence(problem.image, o.t_x, problem.mask, o.dark_eps, t_xc=o.t_xc)
+            cache.texture = (key, made)
+        problem = problem.replace(texture=cache.texture[1])
+        task = dataclasses.replace(task, problem=problem)
     built = assemble_shading_system(problem, o, task.weights, cache, task.seed)
     times = dict(built.times)
     image, mask = problem.image.contiguous(), problem.mask

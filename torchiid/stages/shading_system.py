@@ -105,9 +105,12 @@ class ShadingSystemCache:
         neighbourhood: ``S_c``'s neighbours and LLE weights, shared with the coarser levels
             of a coarse-to-fine solve (which build ``S_c`` on their own grids from the same
             features).
+        texture: ``S_l``'s texture confidence made by the solve for a problem without one,
+            with the key of its inputs.
     """
 
     terms: dict[str, tuple[InputKey, QuadraticTerm]] = field(default_factory=dict)
+    texture: tuple[InputKey, torch.Tensor] | None = None
     hits: int = 0
     preconditioner: object | None = None
     fresh_iterations: int = 0
@@ -205,6 +208,7 @@ def coarse_problem(problem: ShadingProblem, base_sigma: float, base_mix: float) 
         similarity=None if problem.similarity is None else down(problem.similarity),
         base_image=None if base is None else down(base),
         mask=coarse_mask,
+        texture=None if problem.texture is None else down(problem.texture),
     )
 
 
@@ -291,10 +295,13 @@ def _local_makers(
         )
     if weights["S_l"] > 0:
         confident = o.dark_level > 0 or o.clip_level > 0
-        marks = (o.t_c, o.t_b, o.t_i, o.t_e, o.t_d, o.t_h, o.t_x, o.t_x_sigma)
+        marks = (o.t_c, o.t_b, o.t_i, o.t_e, o.t_d, o.t_h, o.t_x, o.t_x_sigma, o.t_xc)
+        texture = problem.texture
         makers["S_l"] = (
             lambda: retinex_term(
-                detexture(image, o.t_x, mask, o.dark_eps, o.t_x_sigma) if o.t_x > 0 else image,
+                detexture(image, o.t_x, mask, o.dark_eps, o.t_x_sigma, o.t_xc, texture)
+                if o.t_x > 0
+                else image,
                 stencil, o.t_c, o.t_b, o.dark_eps, mask,
                 confidence=(
                     pixel_confidence(image, o.dark_level, o.clip_level) if confident else None
@@ -302,7 +309,7 @@ def _local_makers(
                 t_i=o.t_i, t_e=o.t_e, t_d=o.t_d, t_h=o.t_h,
             ),
             # the caller's tensor: the cache key refers to it, not to a contiguous copy
-            input_key(given, *marks, o.dark_eps, o.dark_level, o.clip_level, mask),
+            input_key(given, *marks, o.dark_eps, o.dark_level, o.clip_level, mask, texture),
         )  # fmt: skip
     if weights["S_s"] > 0:
         makers["S_s"] = (

@@ -308,9 +308,12 @@ def _one_frame(
 
 
 def _stage0_seconds(times: dict[str, float]) -> float:
-    """Stage 0's seconds among a decomposition's times (all but the stages' steps and total)."""
+    """Stage 0's seconds among a decomposition's times (not the steps, marks and total)."""
     return sum(
         v
         for k, v in times.items()
-        if not (k.startswith(("shading ", "reflectance ")) or k in ("total", "coarse inputs"))
+        if not (
+            k.startswith(("shading ", "reflectance "))
+            or k in ("total", "coarse inputs", "texture marks")
+        )
     )
