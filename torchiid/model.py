@@ -162,16 +162,18 @@ def decompose(
         return_stage1=return_stage1, return_iterations=return_iterations,
     )  # fmt: skip
     # Stage 0: the semantic features (§3.1), unless given
-    if features is None:
+    stage0 = features is None
+    if stage0:
         features = semantic_features(work.image, params)
-        release_free_memory()  # Stage 0's buffers, before the solves that set the peak
     times = dict(features.times)
-    # S_l's texture marks, at the working resolution for every alternation (after Stage 0,
-    # whose CNN pass sets a peak: the buffers they free go back after the half-size run)
+    # S_l's texture marks, at the working resolution for every alternation: after Stage 0,
+    # whose CNN pass sets a peak, in the memory its freed buffers leave
     t0 = time.perf_counter()
     texture = texture_map(work, params)
     if texture is not None:
         times["texture marks"] = time.perf_counter() - t0
+    if stage0:
+        release_free_memory()  # Stage 0's buffers and the marks', before the solves' peak
     total = params.iterations - work.first + 1  # the alternations this call runs
     if progress is not None:
         progress("features", 0, total)

@@ -2,7 +2,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from torchiid.core.local_fit import _kernels, _sep, local_linear_residual
+from torchiid.core.local_fit import _kernels, _sep, local_linear_residual, residual_in
 
 
 def _reference(x: torch.Tensor, region: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -59,6 +59,7 @@ def test_channels_share_the_fit_and_no_region_is_every_pixel():
     single = local_linear_residual(x, region, 2.0, conv_dtype=torch.float32)
     assert single.dtype == torch.float64
     assert torch.allclose(single, together, atol=1e-5)
+    assert torch.equal(residual_in(x, region, 2.0, torch.float32).double(), single)
 
 
 @pytest.mark.parametrize("sigma", [1.0, 5.0])
@@ -127,3 +128,18 @@ def test_batches_channels_and_tiny_images_match_a_direct_solve(sigma, size):
     assert torch.allclose(
         local_linear_residual(x, None, sigma), _solved(x, everything, sigma), atol=1e-9
     )
+
+
+@pytest.mark.parametrize("sigma", [1.0, 5.0])
+def test_no_region_matches_a_direct_solve_at_sizes_around_its_border_bands(sigma):
+    # without a region the weights are solved near the borders and on one whole row and
+    # column, and the slopes' sums in bands of r px: sizes at which those bands meet or cross
+    r = _kernels(sigma, torch.float64, torch.device("cpu"))[0].numel() // 2
+    g = torch.Generator().manual_seed(4)
+    for h, w in ((2 * r + 1, 2 * r + 2), (4 * r, 4 * r + 1), (4 * r + 9, 2 * r), (1, 5 * r)):
+        x = torch.rand(1, 2, h, w, generator=g, dtype=torch.float64)
+        want = _solved(x, torch.ones(1, 1, h, w, dtype=torch.bool), sigma)
+        assert torch.allclose(local_linear_residual(x, None, sigma), want, atol=1e-9), (h, w)
+        single = residual_in(x.float(), None, sigma, torch.float32)
+        assert single.dtype == torch.float32
+        assert torch.allclose(single.double(), want, atol=1e-5), (h, w)

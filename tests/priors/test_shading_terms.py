@@ -213,6 +213,44 @@ def test_edge_confidence_marks_the_pixels_beside_a_colour_edge():
         retinex_weights(img, st, t_e=-1.0)
 
 
+def _edge_reference(img, t_e, t_d, mask):
+    """``e_i = max_j d_ij`` over the 8 neighbours ``j`` in the image (and the mask), by loops."""
+    _, _, h, w = img.shape
+    p = img[0].clamp_min(1e-4)
+    chrom = p / p.norm(dim=0, keepdim=True)
+    logp = p.mean(0).log()
+    e = torch.zeros(h, w, dtype=torch.float64)
+    for y in range(h):
+        for x in range(w):
+            for dy in (-1, 0, 1):
+                for dx in (-1, 0, 1):
+                    yy, xx = y + dy, x + dx
+                    if (dy, dx) == (0, 0) or not (0 <= yy < h and 0 <= xx < w):
+                        continue
+                    if mask is not None and not mask[0, 0, yy, xx]:
+                        continue
+                    d = 0.0
+                    if t_e > 0:
+                        d = (1 - float((chrom[:, y, x] * chrom[:, yy, xx]).sum())) / t_e
+                    if t_d > 0:
+                        d = max(d, abs(float(logp[y, x] - logp[yy, xx])) / t_d)
+                    e[y, x] = max(float(e[y, x]), d)
+    return torch.exp(-(e**2))
+
+
+@pytest.mark.parametrize("t_e, t_d", [(0.015, 0.0), (0.0, 0.5), (0.03, 0.5)])
+@pytest.mark.parametrize("masked", [False, True])
+def test_edge_confidence_is_the_largest_deviation_over_the_eight_neighbours(t_e, t_d, masked):
+    g = torch.Generator().manual_seed(3)
+    img = 0.05 + torch.rand(1, 3, 6, 7, generator=g, dtype=torch.float64)
+    img[..., 2:4, 2:5] = img[..., 2:3, 2:3]  # a patch of one colour: confidence 1 inside
+    mask = torch.rand(1, 1, 6, 7, generator=g) > 0.3 if masked else None
+    got = edge_confidence(img, t_e, mask=mask, t_d=t_d)
+    want = _edge_reference(img, t_e, t_d, mask)[None, None]
+    assert torch.allclose(got, want, atol=1e-12)
+    assert float(got.min()) < 0.5  # the random colours do mark edges
+
+
 def test_a_pair_cut_by_its_colour_asks_for_no_step_at_partial_confidence():
     # green | white; the pair across the edge is cut by its colour. At partial confidence c it
     # is half a smoothness tie: weight (1 - c) per unit dark factor, target 0 (no share of the

@@ -272,3 +272,42 @@ def test_a_two_dimensional_mask_works_with_the_colour_marks():
     c2 = texture_confidence(s.image, 0.02, mask, t_xc=0.02)
     c4 = texture_confidence(s.image, 0.02, mask[None, None], t_xc=0.02)
     assert torch.equal(c2, c4)
+
+
+@pytest.mark.parametrize("grid, window", [(1, 4), (1, 1), (3, 4), (4, 4), (5, 2)])
+def test_window_medians_are_each_windows_lower_median_of_the_values_inside(grid, window):
+    from torchiid.priors.texture import _medians
+
+    g = torch.Generator().manual_seed(5)
+    r = torch.rand(2, 1, 41, 23, generator=g)  # 41 rows: more than one block of rows
+    r[torch.rand(r.shape, generator=g) > 0.7] = float("nan")  # outside a mask
+    r[1, 0, 10:30] = float("nan")  # windows with no value inside: 0
+    got = _medians(r, window, grid)
+    for b in range(2):
+        for i in range(got.shape[-2]):
+            for j in range(got.shape[-1]):
+                y, x = i * grid, j * grid
+                part = r[
+                    b, 0, max(0, y - window) : y + window + 1, max(0, x - window) : x + window + 1
+                ]
+                values = part[~part.isnan()].sort().values
+                want = values[(values.numel() - 1) // 2] if values.numel() else torch.tensor(0.0)
+                assert float(got[b, 0, i, j]) == float(want), (b, i, j)
+
+
+def test_the_edge_band_is_every_pixel_within_its_reach_of_an_edge():
+    from torchiid.priors.texture import _dilate
+
+    edges = (torch.rand(2, 1, 30, 37, generator=torch.Generator().manual_seed(6)) > 0.998).float()
+    want = F.max_pool2d(edges, 2 * EDGE_RADIUS + 1, 1, EDGE_RADIUS)
+    assert torch.equal(_dilate(edges, EDGE_RADIUS), want) and 0 < want.mean() < 0.9
+
+
+def test_the_removal_keeps_the_images_dtype_and_agrees_across_it():
+    s = textured_plane("wood", "gradient", 64, 64)
+    c = texture_confidence(s.image, 0.02, t_xc=0.02)
+    single = detexture(s.image.float(), 0.02, confidence=c)
+    double = detexture(s.image.double(), 0.02, confidence=c)
+    assert single.dtype == torch.float32 and double.dtype == torch.float64
+    assert torch.allclose(single.double(), double, rtol=1e-5)
+    assert not torch.allclose(double, s.image.double(), rtol=1e-3)  # the grain is taken out

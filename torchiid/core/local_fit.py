@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from torchiid.core.check import as_mask, check_shape
 from torchiid.core.exceptions import ParameterError
 
-__all__ = ["local_linear_residual"]
+__all__ = ["local_linear_residual", "residual_in"]
 
 
 def _kernels(sigma: float, dtype: torch.dtype, device: torch.device) -> dict[int, torch.Tensor]:
@@ -50,6 +50,18 @@ def _sep(x: torch.Tensor, ky: torch.Tensor, kx: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def _border_bands(n: int, r: int) -> list[tuple[int, int, int, int]]:
+    """The slices that give a radius-``r`` window sum within ``r`` of either end of ``n``.
+
+    Each is ``(start, size, keep, length)``: the sums of the input slice ``[start, start +
+    size)``, zero-padded, are right for its outputs ``[keep, keep + length)`` (those whose
+    window stops short of the slice's inner end).
+    """
+    if n <= 4 * r:
+        return [(0, n, 0, n)]
+    return [(0, 2 * r, 0, r), (n - 2 * r, 2 * r, r, r)]
+
+
 def local_linear_residual(
     x: torch.Tensor,
     region: torch.Tensor | None = None,
@@ -68,40 +80,123 @@ def local_linear_residual(
         region: ``(B, 1, H, W)`` mask as in :func:`~torchiid.core.check.as_mask`; ``None``:
             every pixel.
         sigma: Gaussian scale of the fit, in pixels.
-        conv_dtype: the precision of the window sums (float32 is about ten times faster on
-            a CPU; the fit's algebra is float64 either way).
+        conv_dtype: the precision of the window sums, the fit and the residual (float32 is
+            several times faster on a CPU; with a region, the fit's 3×3 algebra is float64
+            either way, without one it is well conditioned in either).
 
     Returns:
-        ``(B, C, H, W)`` residual in float64.
+        ``(B, C, H, W)`` residual in float64 (a copy of :func:`residual_in`'s).
     """
+    return residual_in(x, region, sigma, conv_dtype).double()
+
+
+def residual_in(
+    x: torch.Tensor,
+    region: torch.Tensor | None,
+    sigma: float,
+    conv_dtype: torch.dtype,
+) -> torch.Tensor:
+    """:func:`local_linear_residual` in ``conv_dtype`` (no float64 copy of a float32 result)."""
     check_shape(x, ("B", "C", "H", "W"), "x")
     if not sigma > 0:
         raise ParameterError(f"sigma must be > 0, got {sigma}")
     b, c, h, w = x.shape
+    k = _kernels(float(sigma), conv_dtype, x.device)
+    if region is None:
+        return _residual_everywhere(x, k, sigma, conv_dtype)
     m = as_mask(region, x[:, :1], "region").to(conv_dtype)
     v = (x.to(conv_dtype) * m).reshape(b * c, 1, h, w)
-    k = _kernels(float(sigma), conv_dtype, x.device)
-    # moments Σ G·u^i·v^j·m over the window, u, v the offsets (i + j <= 2), and the same with x
-    pairs = {"1": (0, 0), "u": (0, 1), "v": (1, 0), "uu": (0, 2), "uv": (1, 1), "vv": (2, 0)}
-    if region is None:
-        # m = 1: each moment is the product of a column and a row profile (zero padding)
-        ones_y = torch.ones(1, 1, h, 1, dtype=conv_dtype, device=x.device)
-        ones_x = torch.ones(1, 1, 1, w, dtype=conv_dtype, device=x.device)
-        one = torch.ones(1, dtype=conv_dtype, device=x.device)
-        col = {i: _sep(ones_y, k[i], one).double() for i in (0, 1, 2)}
-        row = {j: _sep(ones_x, one, k[j]).double() for j in (0, 1, 2)}
-        mom = {n: col[i] * row[j] for n, (i, j) in pairs.items()}
-    else:
-        mom = {n: _sep(m, k[i], k[j]).double() for n, (i, j) in pairs.items()}
-    rhs = [_sep(v, k[i], k[j]).double().view(b, c, h, w) for i, j in ((0, 0), (0, 1), (1, 0))]
-    # the intercept from the first row of the symmetric 3×3 system's inverse (its cofactors);
-    # a small ridge on the slopes keeps the system regular where the region is a thin strip
+    mom = {n: _sep(m, k[i], k[j]).double() for n, (i, j) in _PAIRS.items()}
+    w0, w1, w2 = _intercept_weights(mom, sigma)
+    fit = _sep(v, k[0], k[0]).double().view(b, c, h, w).mul_(w0)
+    fit.addcmul_(_sep(v, k[0], k[1]).double().view(b, c, h, w), w1)
+    fit.addcmul_(_sep(v, k[1], k[0]).double().view(b, c, h, w), w2)
+    # outside the region the moments vanish and so does det: those pixels are 0, not 0/0
+    residual: torch.Tensor = torch.where(m.double() > 0, x.double() - fit, 0.0)
+    return residual.to(conv_dtype)
+
+
+#: the moments ``Σ G·v^i·u^j·m`` of the fit's 3×3 system (``v``, ``u`` the row and column
+#: offsets, ``i + j <= 2``), as ``(i, j)``: the powers of the column and row kernels
+_PAIRS = {"1": (0, 0), "u": (0, 1), "v": (1, 0), "uu": (0, 2), "uv": (1, 1), "vv": (2, 0)}
+
+
+def _intercept_weights(
+    mom: dict[str, torch.Tensor], sigma: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The first row of the inverse of each pixel's symmetric 3×3 system (its cofactors).
+
+    The intercept is ``w0·Σ G m x + w1·Σ G u m x + w2·Σ G v m x``. A small ridge on the
+    slopes keeps the system regular where the region is a thin strip.
+    """
     ridge = 1e-10 * sigma**2 * mom["1"].clamp_min(1e-12)
     a00, a01, a02 = mom["1"].clamp_min(1e-12), mom["u"], mom["v"]
     a11, a12, a22 = mom["uu"] + ridge, mom["uv"], mom["vv"] + ridge
     c0, c1, c2 = a11 * a22 - a12 * a12, a02 * a12 - a01 * a22, a01 * a12 - a02 * a11
     det = a00 * c0 + a01 * c1 + a02 * c2
-    fit = (c0 * rhs[0] + c1 * rhs[1] + c2 * rhs[2]) / det
-    # outside the region the moments vanish and so does det: those pixels are 0, not 0/0
-    residual: torch.Tensor = torch.where(m.double() > 0, x.double() - fit, 0.0)
-    return residual
+    return c0 / det, c1 / det, c2 / det
+
+
+def _representatives(n: int, r: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(kept, of)``: the rows within ``r`` of either end of ``n`` and one whole row between.
+
+    Every row farther than ``r`` from the ends has the same (whole) window, so a quantity of
+    the window alone is computed at ``kept`` and spread back by ``of`` (each row's index
+    into ``kept``).
+    """
+    every = torch.arange(n, device=device)
+    if n <= 2 * r + 1:
+        return every, every
+    kept = torch.cat([every[: r + 1], every[n - r :]])
+    of = every.clamp(max=r)
+    of[n - r :] = torch.arange(r + 1, 2 * r + 1, device=device)
+    return kept, of
+
+
+def _profile(kernel: torch.Tensor, n: int, at: torch.Tensor) -> torch.Tensor:
+    """``Σ_d kernel(d)`` over the taps ``d`` with ``0 <= y + d < n``, at the rows ``y`` in ``at``.
+
+    The window sum of a row of ones, zero-padded, from the kernel's cumulative sums (in
+    float64).
+    """
+    r = kernel.numel() // 2
+    sums = F.pad(kernel.double().cumsum(0), (1, 0))
+    first = (r - at).clamp(min=0)  # the first tap inside, d = −y
+    last = (n - 1 - at).clamp(max=r) + r  # the last, d = n − 1 − y
+    return sums[last + 1] - sums[first]
+
+
+def _residual_everywhere(
+    x: torch.Tensor, k: dict[int, torch.Tensor], sigma: float, conv_dtype: torch.dtype
+) -> torch.Tensor:
+    """:func:`local_linear_residual` without a region, in ``conv_dtype``.
+
+    Each moment is then the product of a column and a row profile (zero padding), which
+    change only within ``r`` of the borders: the fit's weights are solved there and on one
+    whole row and column (:func:`_representatives`). Away from the borders the first moments
+    vanish and with them ``w1`` (beyond ``r`` columns of the left and right borders) and
+    ``w2`` (beyond ``r`` rows of the top and bottom), so the slopes' sums are taken in those
+    bands only. The weights are well conditioned without a region: the fit is in the sums'
+    precision.
+    """
+    b, c, h, w = x.shape
+    r, dev, dt = k[0].numel() // 2, x.device, conv_dtype
+    (rows, of_y), (cols, of_x) = _representatives(h, r, dev), _representatives(w, r, dev)
+    col = {i: _profile(k[i], h, rows).view(1, 1, -1, 1) for i in (0, 1, 2)}
+    row = {j: _profile(k[j], w, cols).view(1, 1, 1, -1) for j in (0, 1, 2)}
+    mom = {n: col[i] * row[j] for n, (i, j) in _PAIRS.items()}
+    w0, w1, w2 = (wt.to(dt)[..., of_y, :] for wt in _intercept_weights(mom, sigma))
+    v = x.to(dt).reshape(b * c, 1, h, w)
+    fit = _sep(v, k[0], k[0]).view(b, c, h, w).mul_(w0[..., of_x])
+    for dim, (ki, kj), weight in ((-1, (0, 1), w1), (-2, (1, 0), w2)):
+        cuts = _border_bands(x.shape[dim], r)
+        # both bands' sums in one call (stacked on the batch axis): fewer small operations
+        parts = torch.cat([v.narrow(dim, start, size) for start, size, _, _ in cuts])
+        sums_of = _sep(parts, k[ki], k[kj]).chunk(len(cuts))
+        for (start, _, keep, length), sums in zip(cuts, sums_of, strict=True):
+            at = start + keep
+            band = weight.narrow(dim, at, length) if dim == -2 else weight
+            band = band[..., of_x[at : at + length]] if dim == -1 else band[..., of_x]
+            sums = sums.narrow(dim, keep, length).reshape(b, c, *band.shape[-2:])
+            fit.narrow(dim, at, length).addcmul_(sums, band)
+    return fit.neg_().add_(x)  # x − fit, in place

@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from torchiid.core.check import check_finite, check_image, check_shape
 from torchiid.core.exceptions import ParameterError, ShapeError
 from torchiid.priors.quadratic import StencilQuadratic
-from torchiid.priors.stencil import Stencil
+from torchiid.priors.stencil import Stencil, half_offsets, shift_slices
 
 __all__ = [
     "shading_stencil",
@@ -233,27 +233,23 @@ def edge_confidence(
     logp = intensity(image, dark_eps).log() if t_d > 0 or t_h > 0 else None
     e = torch.zeros(b, 1, h, w, dtype=image.dtype, device=image.device)
     if t_e > 0 or t_d > 0:
-        # each pixel against its 8 neighbours (shifted copies, replicate-padded borders)
-        chrom = None
-        if t_e > 0:
-            chrom = _unit_chromaticity(image, dark_eps)
-            chrom_pad = F.pad(chrom, (1, 1, 1, 1), mode="replicate")
-        if t_d > 0 and logp is not None:
-            logp_pad = F.pad(logp, (1, 1, 1, 1), mode="replicate")
-        inside = None if mask is None else F.pad(mask.to(image.dtype), (1, 1, 1, 1))
-        for dy in range(3):
-            for dx in range(3):
-                if dy == dx == 1:
-                    continue
-                win = (slice(None), slice(None), slice(dy, dy + h), slice(dx, dx + w))
-                d = torch.zeros_like(e)
-                if chrom is not None:
-                    d = (1 - (chrom * chrom_pad[win]).sum(1, keepdim=True)) / t_e
+        # each pixel against its 8 neighbours, one pair at a time: the deviation of a pair is
+        # symmetric, so the 4 half-offsets give it to both pixels (a neighbour outside the
+        # mask counts for neither: d · [j inside] for i, d · [i inside] for j)
+        chrom = _unit_chromaticity(image, dark_eps) if t_e > 0 else None
+        inside = None if mask is None else mask.to(image.dtype)
+        for dy, dx in half_offsets(3):
+            ys_i, xs_i, ys_j, xs_j = shift_slices(dy, dx, h, w)
+            at_i, at_j = (..., ys_i, xs_i), (..., ys_j, xs_j)
+            if chrom is not None:
+                d = (1 - (chrom[at_i] * chrom[at_j]).sum(1, keepdim=True)) / t_e
                 if t_d > 0 and logp is not None:
-                    d = torch.maximum(d, (logp - logp_pad[win]).abs() / t_d)
-                if inside is not None:
-                    d = d * inside[win]
-                e = torch.maximum(e, d)
+                    d = torch.maximum(d, (logp[at_i] - logp[at_j]).abs() / t_d)
+            elif logp is not None:
+                d = (logp[at_i] - logp[at_j]).abs() / t_d
+            for mine, theirs in ((at_i, at_j), (at_j, at_i)):
+                seen = d if inside is None else d * inside[theirs]
+                e[mine] = torch.maximum(e[mine], seen)
     if t_h > 0 and logp is not None:
         e = torch.maximum(e, _stroke_height(logp, mask) / t_h)
     return torch.exp(-(e**2))

@@ -52,8 +52,8 @@ skin, the mortar of a gray wall) stays the shading's, coloured texture goes to t
 reflectance. With ``t_xc``, ``τ`` is measured on ``ℓ`` (the mean of the log channels) and
 reused as the scale that leaves edge pixels out. So that the marks cost a few percent of a
 decomposition, their window statistics (``τ``'s median, the window means) are taken every
-:data:`_GRID` px in each direction and interpolated (they are 9×9-window statistics, smooth at
-that scale), and the four residuals share one fit whose window sums are float32.
+``w`` px in each direction (4 for the 9×9 window: two samples per window side) and
+interpolated, and the four residuals share one fit in float32.
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ import torch.nn.functional as F
 
 from torchiid.core.check import as_mask, check_image, check_shape
 from torchiid.core.exceptions import ParameterError
-from torchiid.core.local_fit import local_linear_residual
+from torchiid.core.local_fit import local_linear_residual, residual_in
 from torchiid.priors.shading_terms import edge_confidence, intensity
 
 __all__ = ["REMOVAL_SIGMA", "colour_texture_evidence", "detexture", "texture_confidence"]
@@ -88,46 +88,60 @@ EDGE_RADIUS = 5
 #: ``t_e`` (the parameter ``t_e`` does not change it)
 EDGE_DEVIATION = 0.015
 
-#: rows per block of the exact window median, so that its 81 window copies stay small
+#: output rows per block of the torch path's window medians, so that its window copies stay
+#: small
 _MEDIAN_ROWS = 32
 
-#: the colour mark's window statistics are taken every this many pixels and interpolated
-_GRID = 3
 
+def _medians(r: torch.Tensor, window: int, grid: int) -> torch.Tensor:
+    """The median over each ``(2w + 1)²`` window of ``r`` at every ``grid``-th pixel.
 
-def _window_median(r: torch.Tensor, window: int) -> torch.Tensor:
-    """The median over each ``(2w + 1)²`` window of ``r`` (NaN: not part of it; none: 0)."""
+    ``r`` is ``(B, 1, H, W)``, NaN where a pixel is not part of the windows; a window with
+    no such pixel gives 0. Each window's values are copied out (``unfold``), a block of
+    output rows at a time.
+    """
     b, _, h, w = r.shape
+    hs, ws = (h - 1) // grid + 1, (w - 1) // grid + 1
+    side = 2 * window + 1
     pad = F.pad(r, (window,) * 4, value=float("nan"))
     rows = []
-    for y0 in range(0, h, _MEDIAN_ROWS):
-        y1 = min(h, y0 + _MEDIAN_ROWS)
-        part = F.unfold(pad[..., y0 : y1 + 2 * window, :], 2 * window + 1)
-        rows.append(part.view(b, -1, y1 - y0, w).nanmedian(1, keepdim=True).values)
+    for i0 in range(0, hs, _MEDIAN_ROWS):
+        i1 = min(hs, i0 + _MEDIAN_ROWS)
+        part = pad[..., i0 * grid : (i1 - 1) * grid + side, :]
+        cols = F.unfold(part, side, stride=grid).view(b, -1, i1 - i0, ws)
+        rows.append(cols.nanmedian(1, keepdim=True).values)
     return torch.cat(rows, -2).nan_to_num(0.0)
 
 
-def _grid_median(r: torch.Tensor, window: int) -> torch.Tensor:
-    """The window median at every :data:`_GRID`-th pixel (NaN: not part of it; none: 0)."""
-    b, _, h, w = r.shape
-    hs, ws = (h - 1) // _GRID + 1, (w - 1) // _GRID + 1
-    pad = F.pad(r, (window,) * 4, value=float("nan"))
-    cols = F.unfold(pad, 2 * window + 1, stride=_GRID).view(b, -1, hs, ws)
-    return cols.nanmedian(1, keepdim=True).values.nan_to_num(0.0)
-
-
 def _grid_mean(x: torch.Tensor, window: int) -> torch.Tensor:
-    """The window mean (zeros outside) at every :data:`_GRID`-th pixel, as two 1-D passes."""
+    """The window mean (zeros outside) at every ``window``-th pixel, as two 1-D passes."""
     k = 2 * window + 1
-    x = F.avg_pool2d(x, (k, 1), (_GRID, 1), (window, 0), count_include_pad=True)
-    return F.avg_pool2d(x, (1, k), (1, _GRID), (0, window), count_include_pad=True)
+    x = F.avg_pool2d(x, (k, 1), (window, 1), (window, 0), count_include_pad=True)
+    return F.avg_pool2d(x, (1, k), (1, window), (0, window), count_include_pad=True)
 
 
-def _from_grid(grid: torch.Tensor, h: int, w: int) -> torch.Tensor:
-    """Bilinear interpolation of grid values (point ``i`` at pixel ``i·_GRID``) to every pixel."""
-    size = ((grid.shape[-2] - 1) * _GRID + 1, (grid.shape[-1] - 1) * _GRID + 1)
-    out = F.interpolate(grid, size=size, mode="bilinear", align_corners=True)
+def _from_grid(values: torch.Tensor, step: int, h: int, w: int) -> torch.Tensor:
+    """Bilinear interpolation of grid values (point ``i`` at pixel ``i·step``) to every pixel."""
+    size = ((values.shape[-2] - 1) * step + 1, (values.shape[-1] - 1) * step + 1)
+    out = F.interpolate(values, size=size, mode="bilinear", align_corners=True)
     return F.pad(out, (0, w - size[1], 0, h - size[0]), mode="replicate")
+
+
+def _dilate(x: torch.Tensor, reach: int) -> torch.Tensor:
+    """The maximum over each ``(2 reach + 1)²`` square (zeros outside), as shifted maxima.
+
+    ``max_pool2d`` takes several times longer on a CPU than these ``4 reach`` passes.
+    """
+    h, w = x.shape[-2:]
+    pad = F.pad(x, (0, 0, reach, reach))
+    y = pad[..., :h, :].clone()
+    for i in range(1, 2 * reach + 1):
+        torch.maximum(y, pad[..., i : i + h, :], out=y)
+    pad = F.pad(y, (reach, reach))
+    out = pad[..., :w].clone()
+    for i in range(1, 2 * reach + 1):
+        torch.maximum(out, pad[..., i : i + w], out=out)
+    return out
 
 
 def _check(t_x: float, t_xc: float, window: int) -> None:
@@ -151,13 +165,17 @@ def _colour_marks(
     log_rgb = image.float().clamp_min(dark_eps).log()
     ell = log_rgb.mean(1, keepdim=True)
     q = log_rgb - ell
-    r = local_linear_residual(torch.cat([ell, q], 1), mask, 1.0, torch.float32).float()
+    r = residual_in(torch.cat([ell, q], 1), mask, 1.0, torch.float32)
     r_ell, r_q = r[:, :1], r[:, 1:]
     h, w = r.shape[-2:]
-    inside = as_mask(mask, r_ell, "mask")
-    tau = _from_grid(_grid_median(torch.where(inside, r_ell.abs(), torch.nan), window), h, w)
-    keep = (inside & (r_ell.abs() <= OUTLIER * tau.clamp_min(1e-6))).float()
-    terms = [keep, keep * r_ell**2, keep * (r_q**2).sum(1, keepdim=True), keep * r_q * r_ell]
+    size = r_ell.abs()
+    inside = None if mask is None else as_mask(mask, r_ell, "mask")
+    seen = size if inside is None else torch.where(inside, size, torch.nan)
+    tau = _from_grid(_medians(seen, window, window), window, h, w)
+    keep = size <= OUTLIER * tau.clamp_min(1e-6)
+    keep = (keep if inside is None else keep & inside).float()
+    kept = keep * r_ell
+    terms = [keep, kept * r_ell, keep * r_q.square().sum(1, keepdim=True), r_q * kept]
     sums = _grid_mean(torch.cat(terms, 1), window)
     n = sums[:, :1].clamp_min(1e-12)
     var_ell, var_q = sums[:, 1:2] / n, sums[:, 2:3] / n
@@ -165,12 +183,10 @@ def _colour_marks(
     slope = cov / var_ell.clamp_min(1e-12)
     corr = cov / (var_ell * var_q).sqrt().clamp_min(1e-12)
     ramp = ((corr - CORRELATION) / 0.3).clamp(0, 1) * ((slope - t_xc) / (2 * t_xc)).clamp(0, 1)
-    evidence = _from_grid(ramp, h, w)
-    edges = (edge_confidence(image, t_e, dark_eps, mask) < 0.5).float()
-    side, reach = 2 * EDGE_RADIUS + 1, EDGE_RADIUS
-    near = F.max_pool2d(edges, (side, 1), 1, (reach, 0))
-    near = F.max_pool2d(near, (1, side), 1, (0, reach))
-    return tau, evidence * (1 - near) * inside
+    evidence = _from_grid(ramp, window, h, w)
+    edges = (edge_confidence(image.float(), t_e, dark_eps, mask) < 0.5).float()
+    evidence = evidence * (1 - _dilate(edges, EDGE_RADIUS))
+    return tau, evidence if inside is None else evidence * inside
 
 
 def texture_confidence(
@@ -191,8 +207,8 @@ def texture_confidence(
         window: half-side ``w`` (px) of the median's square window.
         t_xc: with ``> 0``, only texture that changes colour with its lightness counts:
             ``1 − (1 − c) ·`` :func:`colour_texture_evidence`, ``τ`` measured on the mean
-            of the log channels every 3 px and interpolated (0: all dense texture, ``τ``
-            on the log of the mean intensity at every pixel).
+            of the log channels every ``window`` px and interpolated (0: all dense
+            texture, ``τ`` on the log of the mean intensity at every pixel).
 
     Returns:
         ``(B, 1, H, W)`` in the image's dtype.
@@ -207,7 +223,7 @@ def texture_confidence(
     r = local_linear_residual(intensity(image, dark_eps).log(), mask, sigma=1.0).abs()
     if mask is not None:
         r = torch.where(as_mask(mask, r), r, torch.nan)  # outside pixels take no part
-    tau = _window_median(r, window)
+    tau = _medians(r, window, 1)
     return torch.exp(-((tau / t_x) ** 2)).to(image.dtype)
 
 
@@ -256,15 +272,16 @@ def detexture(
 
     Returns:
         ``(B, 3, H, W)``: ``image · exp(−(1 − c) · r')`` with ``c`` the texture confidence and
-        ``r'`` the residual of ``log p`` after its local linear fit at ``sigma`` px (window
-        sums in float32).
+        ``r'`` the residual of ``log p`` after its local linear fit at ``sigma`` px (in
+        float32), in the image's dtype (float32 at least).
     """
     if confidence is None:
-        c = texture_confidence(image, t_x, mask, dark_eps, t_xc=t_xc).double()
+        c = texture_confidence(image, t_x, mask, dark_eps, t_xc=t_xc)
     else:
         check_image(image, "image", channels=3)
         shape = (image.shape[0], 1, *image.shape[-2:])
         check_shape(confidence, shape, "confidence (ShadingProblem.texture)")
-        c = confidence.double()
-    r = local_linear_residual(intensity(image, dark_eps).log(), mask, sigma, torch.float32)
-    return (image.double() * torch.exp(-(1 - c) * r)).to(image.dtype)
+        c = confidence
+    r = residual_in(intensity(image, dark_eps).log(), mask, sigma, torch.float32)
+    dtype = torch.promote_types(image.dtype, torch.float32)
+    return (image.to(dtype) * torch.exp((c.to(dtype) - 1) * r)).to(image.dtype)
